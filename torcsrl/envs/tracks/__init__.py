@@ -1,0 +1,100 @@
+"""The bundled track library, track sets and procedural tracks.
+
+Public API::
+
+    from torcsrl.envs import tracks
+    tracks.names()                       # bundled track names
+    t = tracks.load("oval")              # a validated Track
+    t = tracks.load("oval", surface="ice")
+    t = tracks.generate(7, length_m=2500, corners=9)
+    tracks.track_sets()                  # {"train": [...], "heldout": [...], ...}
+    tracks.resolve("set:train")          # names in a set (or [name] for a track name)
+
+Tracks are data files in ``torcsrl/envs/tracks/data`` (segment lists, or sidecars naming a
+centreline point file); sets are in ``data/sets.yaml``. ``gen-<seed>`` names a procedural track
+with the generator's default knobs, so config can mix bundled and generated tracks.
+"""
+
+from __future__ import annotations
+
+import copy
+from functools import lru_cache
+from importlib import resources
+from pathlib import Path
+
+import yaml
+
+from torcsrl.envs.track import Track, TrackError
+from torcsrl.envs.tracks.generator import generate
+from torcsrl.envs.tracks.sources import load_file
+
+__all__ = ["Track", "TrackError", "names", "load", "load_file", "generate", "track_sets", "resolve", "data_dir"]
+
+
+def data_dir() -> Path:
+    """Folder holding the bundled track files."""
+    return Path(str(resources.files("torcsrl.envs.tracks").joinpath("data")))
+
+
+def names() -> list[str]:
+    """Names of the bundled tracks, sorted."""
+    return sorted(p.stem for p in data_dir().glob("*.yaml") if p.stem != "sets")
+
+
+@lru_cache(maxsize=None)
+def _load_cached(name: str) -> Track:
+    if name.startswith("gen-"):
+        return generate(int(name[4:]))
+    return load_file(data_dir() / f"{name}.yaml")
+
+
+def load(name: str, surface: str | None = None) -> Track:
+    """A bundled (or ``gen-<seed>``) track by name, optionally on another road surface.
+
+    Raises:
+        ValueError: unknown name (the message lists the available ones) or unknown surface.
+    """
+    if not isinstance(name, str):
+        raise ValueError(f"a track name must be a string, got {name!r}")
+    if (name.startswith("gen-") and name[4:].isdigit()) or name in names():
+        track = copy.copy(_load_cached(name))
+    else:
+        raise ValueError(f"unknown track {name!r}; available: {', '.join(names())} (or gen-<seed> for a generated one)")
+    return track.with_surface(surface) if surface else track
+
+
+@lru_cache(maxsize=1)
+def _sets() -> dict[str, list[str]]:
+    raw = yaml.safe_load((data_dir() / "sets.yaml").read_text())
+    known = set(names())
+    for set_name, members in raw.items():
+        missing = [m for m in members if m not in known and not (m.startswith("gen-") and m[4:].isdigit())]
+        if missing:
+            raise TrackError(f"{data_dir() / 'sets.yaml'}: set {set_name!r} names unknown tracks {missing}")
+    return {k: list(v) for k, v in raw.items()}
+
+
+def track_sets() -> dict[str, list[str]]:
+    """Named track sets, e.g. ``train`` and ``heldout`` (copies: safe to modify)."""
+    return {k: list(v) for k, v in _sets().items()}
+
+
+def resolve(spec: str | list[str] | tuple[str, ...]) -> list[str]:
+    """Track names from a name, a ``set:<name>`` reference, or a list mixing both."""
+    if isinstance(spec, (list, tuple)):
+        out: list[str] = []
+        for item in spec:
+            out.extend(resolve(item))
+        if not out:
+            raise ValueError("an empty list of tracks; give at least one track name or set:<name>")
+        return out
+    if not isinstance(spec, str):
+        raise ValueError(f"tracks are given by name, set:<name> or a list of those, got {spec!r}")
+    if spec.startswith("set:"):
+        sets = _sets()
+        key = spec[4:]
+        if key not in sets:
+            raise ValueError(f"unknown track set {key!r}; available sets: {', '.join(sorted(sets))}")
+        return list(sets[key])
+    load(spec)  # validates the name
+    return [spec]
