@@ -190,7 +190,8 @@ class Track:
             xy: world points ``[..., 2]`` [m].
             s_hint: optional previous arc length of each point ``[...]``: only chords within
                 ``±window_m`` of it are searched (faster, and it can never jump to the other leg
-                of a hairpin). Points with no solution near the hint fall back to a global search.
+                of a hairpin). Without a hint the search starts from the nearest centreline sample
+                (±30 m). Points with no solution in the window fall back to a search of all chords.
             window_m: half-width of the hint's search window [m].
         """
         p = np.asarray(xy, dtype=np.float64)
@@ -198,16 +199,22 @@ class Track:
         p = p.reshape(-1, 2)
         m = len(self.xy)
         if s_hint is not None:
-            k = int(min(m, 2 * int(np.ceil(window_m / self.ds)) + 1))
             hint = np.broadcast_to(np.asarray(s_hint, dtype=np.float64), shape).reshape(-1)
             i0, _ = self._locate(hint)
-            idx = (i0[:, None] + np.arange(k)[None, :] - k // 2) % m
-            s, d, ok = self._project_candidates(p, idx)
-            if not ok.all():
-                bad = ~ok
-                s[bad], d[bad], _ = self._project_candidates(p[bad], None)
-        else:
-            s, d, _ = self._project_candidates(p, None)
+        else:  # start from the nearest centreline sample (a k-d tree query)
+            if "kdtree" not in self._cache:
+                from scipy.spatial import cKDTree
+
+                self._cache["kdtree"] = cKDTree(self.xy)
+            i0 = self._cache["kdtree"].query(p)[1]
+            window_m = min(window_m, 30.0)
+        # search the chords in a window around the start chord; fall back to all chords
+        k = int(min(m, 2 * int(np.ceil(window_m / self.ds)) + 1))
+        idx = (i0[:, None] + np.arange(k)[None, :] - k // 2) % m
+        s, d, ok = self._project_candidates(p, idx)
+        if not ok.all():
+            bad = ~ok
+            s[bad], d[bad], _ = self._project_candidates(p[bad], None)
         return s.reshape(shape), d.reshape(shape)
 
     def _project_candidates(self, p: np.ndarray, idx: np.ndarray | None):
