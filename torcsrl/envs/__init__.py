@@ -1,1 +1,47 @@
-"""The simulator and its faces: tracks, vehicle, sensors, rewards, the gymnasium and TorchRL envs."""
+"""The simulator and its faces: tracks, vehicle, sensors, rewards, the gymnasium and TorchRL envs.
+
+- ``gymnasium.make("torcsrl/Race-v0", track=..., surface=..., ...)``: one car, gymnasium API.
+- ``torcsrl.envs.make_env(...)``: the TorchRL ``EnvBase`` (one car, or ``num_cars=N`` in one world).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+
+ENV_ID = "torcsrl/Race-v0"
+
+if ENV_ID not in gym.registry:
+    gym.register(id=ENV_ID, entry_point="torcsrl.envs.race:RaceEnv", disable_env_checker=False)
+
+
+def make_env(
+    track: str | list[str] = "road_flow",
+    surface: str | list[str] | None = None,
+    sensors: tuple[str, ...] | list[str] = ("rangefinder", "state"),
+    reward: str | dict[str, float] = "summers_final",
+    num_cars: int = 1,
+    max_steps: int = 2500,
+    lap_limit: int | None = None,
+    start: str = "grid",
+    seed: int | None = None,
+    device: str = "cpu",
+    camera: dict[str, Any] | None = None,
+    batched: bool | None = None,
+    **kwargs: Any,
+):
+    """The race as a TorchRL ``EnvBase`` (see :class:`torcsrl.envs.batched.TorchRaceEnv`).
+
+    ``batch_size`` is ``[]`` for one car, ``[num_cars]`` otherwise (or with ``batched=True``).
+    Every keyword of :class:`torcsrl.envs.race.RaceCore` is accepted (reward_scale, spawn_jitter,
+    offtrack_grace_s, no_progress_s, action_mode, vehicle, control_hz, …).
+    """
+    from torcsrl.envs.batched import TorchRaceEnv
+
+    return TorchRaceEnv(track=track, surface=surface, sensors=tuple(sensors), reward=reward, num_cars=num_cars,
+                        max_steps=max_steps, lap_limit=lap_limit, start=start, seed=seed, device=device,
+                        camera=camera, batched=batched, **kwargs)
+
+
+__all__ = ["ENV_ID", "make_env"]

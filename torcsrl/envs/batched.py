@@ -1,0 +1,145 @@
+"""The TorchRL face of the race: one car (batch_size ``[]``) or N cars in one world (``[N]``).
+
+N cars share one pybullet client and never collide; each has its own track (drawn per episode
+from the track list), progress and episode, and done cars are reset individually (partial reset
+through the ``"_reset"`` key, as TorchRL's collectors do it). This is the fast path for training.
+
+Keys (per car): the sensor observations (``rangefinder`` [m], ``state``, ``pixels`` uint8,
+``depth`` [m]), ``action`` float32 ``[2]`` (or ``[3]``), ``reward`` ``[1]``, ``done`` /
+``terminated`` / ``truncated`` ``[1]`` bool, and ``info``: distFromStart, distRaced [m], lap,
+curLapTime, lastLapTime, bestLapTime [s], finished, track_slot and the reward terms
+``reward_<term>``. See :class:`torcsrl.envs.race.RaceEnv` for the meaning and units of each.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from torcsrl.envs.race import INFO_KEYS, RaceCore
+from torcsrl.envs.rewards import REWARD_TERMS
+
+_FLOAT_INFO = tuple(k for k in INFO_KEYS if k != "lap") + tuple(f"reward_{t}" for t in REWARD_TERMS)
+
+
+class TorchRaceEnv(EnvBase):
+    """TorchRL ``EnvBase`` over :class:`~torcsrl.envs.race.RaceCore`.
+
+    Args:
+        num_cars: N cars; ``batch_size`` is ``[N]``, or ``[]`` when N = 1 and ``batched`` is False.
+        batched: keep a batch dimension for N = 1.
+        device: torch device of the output tensors (the simulation runs on the CPU).
+        **kwargs: everything else goes to :class:`RaceCore` (track, surface, sensors, reward, …).
+    """
+
+    _has_dynamic_specs = False
+
+    def __init__(self, num_cars: int = 1, batched: bool | None = None, device: str | torch.device = "cpu",
+                 seed: int | None = None, **kwargs: Any) -> None:
+        batched = num_cars > 1 if batched is None else bool(batched)
+        if num_cars > 1 and not batched:
+            raise ValueError("num_cars > 1 needs batched=True")
+        self._kwargs = dict(kwargs, num_cars=num_cars, batched=batched, seed=seed)
+        self.core = RaceCore(num_cars=num_cars, seed=seed, **kwargs)
+        batch = torch.Size([num_cars]) if batched else torch.Size([])
+        super().__init__(device=device, batch_size=batch)
+        self._batched = batched
+        self._make_specs()
+
+    # ------------------------------------------------------------------ specs
+    def _make_specs(self) -> None:
+        c = self.core
+        b = self.batch_size
+        obs = {}
+        for key, shape in c.observation_shapes.items():
+            full = (*b, *shape)
+            if key == "rangefinder":
+                obs[key] = Bounded(-1.0, c.rangefinder.range_m, full, dtype=torch.float32, device=self.device)
+            elif key == "state":
+                obs[key] = Unbounded(full, dtype=torch.float32, device=self.device)
+            elif key == "pixels":
+                obs[key] = Bounded(0, 255, full, dtype=torch.uint8, device=self.device)
+            elif key == "depth":
+                obs[key] = Bounded(0.0, float(c.camera.far), full, dtype=torch.float32, device=self.device)
+        info = {k: Unbounded((*b, 1), dtype=torch.float32, device=self.device) for k in _FLOAT_INFO}
+        info["lap"] = Unbounded((*b, 1), dtype=torch.int64, device=self.device)
+        info["track_slot"] = Unbounded((*b, 1), dtype=torch.int64, device=self.device)
+        info["finished"] = Categorical(2, (*b, 1), dtype=torch.bool, device=self.device)
+        obs["info"] = Composite(info, shape=b, device=self.device)
+        self.observation_spec = Composite(obs, shape=b, device=self.device)
+        self.action_spec = Bounded(-1.0, 1.0, (*b, c.action_dim), dtype=torch.float32, device=self.device)
+        self.reward_spec = Unbounded((*b, 1), dtype=torch.float32, device=self.device)
+        self.done_spec = Composite(
+            done=Categorical(2, (*b, 1), dtype=torch.bool, device=self.device),
+            terminated=Categorical(2, (*b, 1), dtype=torch.bool, device=self.device),
+            truncated=Categorical(2, (*b, 1), dtype=torch.bool, device=self.device),
+            shape=b, device=self.device)
+
+    # ------------------------------------------------------------------ helpers
+    def _t(self, x: np.ndarray, dtype=torch.float32) -> torch.Tensor:
+        t = torch.as_tensor(np.asarray(x), dtype=dtype)
+        if not self._batched:
+            t = t[0]
+        return t.to(self.device) if self.device.type != "cpu" else t
+
+    def _observation(self) -> dict[str, Any]:
+        c = self.core
+        out: dict[str, Any] = {}
+        for k, v in c.obs.items():
+            out[k] = self._t(v, torch.uint8 if k == "pixels" else torch.float32)
+        info = c.info()
+        inf = {k: self._t(info[k][:, None]) for k in _FLOAT_INFO}
+        inf["lap"] = self._t(info["lap"][:, None], torch.int64)
+        inf["track_slot"] = self._t(c.slot[:, None], torch.int64)
+        inf["finished"] = self._t(c.finished[:, None], torch.bool)
+        out["info"] = inf
+        return out
+
+    # ------------------------------------------------------------------ EnvBase API
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:
+        mask = None
+        if tensordict is not None and "_reset" in tensordict.keys():
+            mask = tensordict.get("_reset").reshape(-1).cpu().numpy()
+            if not self._batched:
+                mask = mask[:1]
+        if mask is None or mask.all():
+            self.core.reset()
+        else:
+            self.core.reset(mask)
+        n = self.core.n
+        td = self._observation()
+        zeros = np.zeros((n, 1), dtype=bool)
+        td.update(done=self._t(zeros, torch.bool), terminated=self._t(zeros, torch.bool),
+                  truncated=self._t(zeros, torch.bool))
+        return TensorDict(td, batch_size=self.batch_size, device=self.device)
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = tensordict.get("action").detach().cpu().numpy().reshape(self.core.n, -1)
+        c = self.core
+        c.step(action)
+        td = self._observation()
+        td["reward"] = self._t(c.rewards[:, None])
+        td["terminated"] = self._t(c.terminated[:, None], torch.bool)
+        td["truncated"] = self._t(c.truncated[:, None], torch.bool)
+        td["done"] = self._t((c.terminated | c.truncated)[:, None], torch.bool)
+        return TensorDict(td, batch_size=self.batch_size, device=self.device)
+
+    def _set_seed(self, seed: int | None) -> None:
+        self.core.seed(seed)
+
+    def close(self, *, raise_if_closed: bool = True) -> None:
+        if getattr(self, "core", None) is not None:
+            self.core.close()
+        super().close(raise_if_closed=raise_if_closed) if "raise_if_closed" in EnvBase.close.__code__.co_varnames else super().close()
+
+    def __getstate__(self):  # pickling re-creates the world from the constructor arguments
+        return {"kwargs": self._kwargs, "device": str(self.device)}
+
+    def __setstate__(self, state):
+        kw = dict(state["kwargs"])
+        self.__init__(device=state["device"], **kw)

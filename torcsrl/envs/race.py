@@ -1,0 +1,529 @@
+"""The race simulation core and its gymnasium face.
+
+:class:`RaceCore` is the one simulation every face shares: N cars in one pybullet client (cars
+never collide; each has its own track, progress and episode), TORCS-style sensors, named reward
+terms, lap bookkeeping and the episode rules. :class:`RaceEnv` is its gymnasium face (one car);
+:class:`torcsrl.envs.batched.TorchRaceEnv` its TorchRL face (one car or a batch).
+
+One control step (the template method, :meth:`RaceCore.step`):
+act (sanitise) → physics substeps → locate (Frenet projection, surfaces under the wheels) →
+bookkeeping (progress, laps) → observe (sensors) → reward terms → terminated → truncated → info.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import pybullet as p
+from gymnasium import spaces
+from gymnasium.utils import EzPickle
+
+from torcsrl.envs import surfaces as _surf
+from torcsrl.envs import tracks as _tracks
+from torcsrl.envs.rewards import REWARD_TERMS, Reward
+from torcsrl.envs.sensors import (MS_TO_KMH, RANGEFINDER_ANGLES_DEG, RANGE_M, STATE_SLOTS, Rangefinder,
+                                  check_sensors)
+from torcsrl.envs.vehicle import CarFleet, VehicleParams, make_ground
+
+ACTION_MODES = ("combined", "separate")
+START_MODES = ("grid", "random")
+#: Keys of the per-car bookkeeping reported in ``info`` (TORCS names; SI units).
+INFO_KEYS: tuple[str, ...] = ("distFromStart", "distRaced", "lap", "curLapTime", "lastLapTime", "bestLapTime")
+TERMINATION_REASONS: tuple[str, ...] = ("", "off_track", "backwards", "no_progress", "flipped")
+
+
+def _as_list(x) -> list:
+    if x is None:
+        return [None]
+    if isinstance(x, (list, tuple)):
+        return list(x)
+    if hasattr(x, "__iter__") and not isinstance(x, str):  # omegaconf ListConfig
+        return list(x)
+    return [x]
+
+
+class RaceCore:
+    """N cars racing on their own tracks in one pybullet world.
+
+    Args:
+        track: a track name, ``set:<name>``, ``gen-<seed>``, or a list of those. With several,
+            each car draws its track for every episode from the env's seed.
+        surface: road surface for every track (``None``: each track's own), or a list to draw one
+            per episode (domain randomisation).
+        num_cars: number of cars N.
+        sensors: observation keys, from ``rangefinder``, ``state``, ``pixels``, ``depth``.
+        reward: a reward preset name or term weights (see :mod:`torcsrl.envs.rewards`).
+        reward_scale: factor on the summed reward.
+        max_steps: episode step limit (truncation) [control steps].
+        lap_limit: end the episode (truncated, ``finished``) after this many laps; ``None``: off.
+        start: ``grid`` (on the start line) or ``random`` (uniform s along the lap).
+        spawn_jitter: ``(d_m, yaw_rad)`` uniform half-ranges added to the spawn pose.
+        offtrack_grace_s: time the car may spend off the track before the episode terminates [s].
+        no_progress_s: terminate when the car has not set a new furthest distance for this long
+            [s]; ``None`` disables.
+        backwards_m: terminate after driving this far backwards from the furthest point [m].
+        action_mode: ``combined`` (steer, throttle_brake) or ``separate`` (steer, throttle, brake).
+        vehicle: vehicle parameter file name; ``vehicle_overrides``: parameter overrides.
+        control_hz, substeps: control rate [Hz] and physics substeps per control step.
+        rangefinder_angles_deg: beam angles [deg]; ``rangefinder_range_m``: beam range [m].
+        camera: keyword arguments for :class:`torcsrl.envs.camera.Camera` (pixels/depth).
+        seed: seed of the env's random generator (tracks, surfaces, spawn).
+    """
+
+    def __init__(
+        self,
+        track: str | Sequence[str] = "road_flow",
+        surface: str | Sequence[str] | None = None,
+        num_cars: int = 1,
+        sensors: Sequence[str] = ("rangefinder", "state"),
+        reward: str | Mapping[str, float] = "summers_final",
+        reward_scale: float = 1.0,
+        max_steps: int = 2500,
+        lap_limit: int | None = None,
+        start: str = "grid",
+        spawn_jitter: Sequence[float] = (0.0, 0.0),
+        offtrack_grace_s: float = 0.0,
+        no_progress_s: float | None = 5.0,
+        backwards_m: float = 10.0,
+        action_mode: str = "combined",
+        vehicle: str = "default",
+        vehicle_overrides: Mapping[str, Any] | None = None,
+        control_hz: float = 50.0,
+        substeps: int = 4,
+        rangefinder_angles_deg: Sequence[float] = RANGEFINDER_ANGLES_DEG,
+        rangefinder_range_m: float = RANGE_M,
+        camera: Mapping[str, Any] | None = None,
+        seed: int | None = None,
+    ) -> None:
+        self.sensors = check_sensors(sensors)
+        if int(num_cars) != num_cars or num_cars < 1:
+            raise ValueError(f"num_cars must be a positive integer, got {num_cars!r}")
+        if action_mode not in ACTION_MODES:
+            raise ValueError(f"unknown action_mode {action_mode!r}; allowed: {', '.join(ACTION_MODES)}")
+        if start not in START_MODES:
+            raise ValueError(f"unknown start {start!r}; allowed: {', '.join(START_MODES)}")
+        if int(max_steps) != max_steps or max_steps < 1:
+            raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}")
+        if lap_limit is not None and (int(lap_limit) != lap_limit or lap_limit < 1):
+            raise ValueError(f"lap_limit must be a positive integer or None, got {lap_limit!r}")
+        self.n = int(num_cars)
+        self.track_names = _tracks.resolve(_as_list(track))
+        self.surfaces = _as_list(surface)
+        for s in self.surfaces:
+            if s is not None and s not in _surf.ROAD_SURFACES:
+                raise ValueError(f"unknown surface {s!r}; road surfaces: {', '.join(_surf.ROAD_SURFACES)}")
+        self.reward = Reward(reward, reward_scale)
+        self.max_steps = int(max_steps)
+        self.lap_limit = None if lap_limit is None else int(lap_limit)
+        self.start = start
+        self.spawn_jitter = (float(spawn_jitter[0]), float(spawn_jitter[1]))
+        self.offtrack_grace_s = float(offtrack_grace_s)
+        self.no_progress_s = None if no_progress_s is None else float(no_progress_s)
+        self.backwards_m = float(backwards_m)
+        self.action_mode = action_mode
+        self.action_dim = 2 if action_mode == "combined" else 3
+
+        self.client = p.connect(p.DIRECT)
+        make_ground(self.client)
+        params = VehicleParams.load(vehicle, overrides=dict(vehicle_overrides) if vehicle_overrides else None)
+        self.fleet = CarFleet(self.client, self.n, params, control_hz=control_hz, substeps=substeps)
+        self.dt = self.fleet.dt_control
+        self.rangefinder = Rangefinder(rangefinder_angles_deg, rangefinder_range_m) if "rangefinder" in self.sensors else None
+        self._geometry = [_tracks.load(name) for name in self.track_names]  # one slot per distinct entry
+        self._variants: dict[tuple[int, str | None], Any] = {}
+        if self.rangefinder is not None:
+            for slot, t in enumerate(self._geometry):
+                self.rangefinder.add_track(slot, t)
+        self.camera = None
+        self._camera_cfg = dict(camera) if camera else {}
+        if "pixels" in self.sensors or "depth" in self.sensors:
+            self._make_camera()
+
+        n = self.n
+        self.rng = np.random.default_rng(seed)
+        self.slot = np.zeros(n, dtype=np.int64)
+        self.car_tracks = [self._variant(0, self.surfaces[0])] * n
+        self.s = np.zeros(n)
+        self.d = np.zeros(n)
+        self.s0 = np.zeros(n)  # spawn arc length
+        self.dist_raced = np.zeros(n)
+        self.best_dist = np.zeros(n)
+        self.best_dist_time = np.zeros(n)
+        self.lap = np.zeros(n, dtype=np.int64)
+        self.time = np.zeros(n)
+        self.lap_start_time = np.zeros(n)
+        self.lap_timed = np.zeros(n, dtype=bool)  # the running lap started on the line
+        self.last_lap_time = np.zeros(n)
+        self.best_lap_time = np.zeros(n)
+        self.steps = np.zeros(n, dtype=np.int64)
+        self.offtrack_time = np.zeros(n)
+        self.angle = np.zeros(n)
+        self.track_pos = np.zeros(n)
+        self.finished = np.zeros(n, dtype=bool)
+        self.reason = np.zeros(n, dtype=np.int64)
+        self.terms = np.zeros((len(REWARD_TERMS), n))
+        self.obs: dict[str, np.ndarray] = {}
+
+    # ------------------------------------------------------------------ setup helpers
+    def _variant(self, slot: int, surface: str | None):
+        key = (slot, surface)
+        if key not in self._variants:
+            t = self._geometry[slot]
+            self._variants[key] = t.with_surface(surface) if surface else t
+        return self._variants[key]
+
+    def _make_camera(self) -> None:
+        from torcsrl.envs import camera as _camera  # optional: pixels and depth
+
+        self.camera = _camera.CarCameras(self.client, self, **self._camera_cfg)
+
+    @property
+    def observation_shapes(self) -> dict[str, tuple[int, ...]]:
+        out = {}
+        if "rangefinder" in self.sensors:
+            out["rangefinder"] = (self.rangefinder.n_beams,)
+        if "state" in self.sensors:
+            out["state"] = (len(STATE_SLOTS),)
+        if self.camera is not None:
+            out.update(self.camera.shapes)
+        return {k: out[k] for k in self.sensors}
+
+    def seed(self, seed: int | None) -> None:
+        self.rng = np.random.default_rng(seed)
+
+    # ------------------------------------------------------------------ reset
+    def reset(self, idx: np.ndarray | None = None) -> None:
+        """Start a new episode for cars ``idx`` (all when None); the others are untouched."""
+        idx = np.arange(self.n) if idx is None else np.flatnonzero(idx) if np.asarray(idx).dtype == bool else np.asarray(idx)
+        if len(idx) == 0:
+            return
+        k = len(idx)
+        rng = self.rng
+        slots = rng.integers(len(self._geometry), size=k) if len(self._geometry) > 1 else np.zeros(k, dtype=np.int64)
+        surf = [self.surfaces[j] for j in (rng.integers(len(self.surfaces), size=k) if len(self.surfaces) > 1 else np.zeros(k, dtype=int))]
+        xy = np.zeros((k, 2))
+        yaw = np.zeros(k)
+        for j, i in enumerate(idx):
+            t = self._variant(int(slots[j]), surf[j])
+            self.slot[i] = slots[j]
+            self.car_tracks[i] = t
+            s0 = rng.uniform(0.0, t.length) if self.start == "random" else 0.0
+            dj = rng.uniform(-1.0, 1.0) * self.spawn_jitter[0] if self.spawn_jitter[0] else 0.0
+            yj = rng.uniform(-1.0, 1.0) * self.spawn_jitter[1] if self.spawn_jitter[1] else 0.0
+            xy[j] = t.to_world(s0, dj)
+            yaw[j] = float(t.heading(s0)) + yj
+            self.s0[i] = s0
+            self.s[i] = s0
+        self.fleet.reset(idx, xy, yaw, 0.0)
+        for name in ("dist_raced", "best_dist", "best_dist_time", "time", "lap_start_time", "last_lap_time",
+                     "best_lap_time", "offtrack_time"):
+            getattr(self, name)[idx] = 0.0
+        self.lap[idx] = 0
+        self.steps[idx] = 0
+        self.lap_timed[idx] = self.start == "grid"
+        self.finished[idx] = False
+        self.reason[idx] = 0
+        self.terms[:, idx] = 0.0
+        self._locate(idx_reset=idx)
+        self._observe()
+
+    # ------------------------------------------------------------------ step
+    def sanitize(self, action) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(steer, throttle, brake) ``[N]`` from an action ``[N, A]``; see :class:`RaceEnv`."""
+        a = np.asarray(action, dtype=np.float64)
+        if a.shape != (self.n, self.action_dim):
+            if a.size == self.n * self.action_dim:
+                a = a.reshape(self.n, self.action_dim)
+            else:
+                want = (self.action_dim,) if self.n == 1 else (self.n, self.action_dim)
+                raise ValueError(f"action has shape {a.shape}; expected {want} ({self.action_mode}: "
+                                 f"{'steer, throttle_brake' if self.action_dim == 2 else 'steer, throttle, brake'})")
+        if not np.isfinite(a).all():
+            raise ValueError(f"action contains NaN or inf: {a.tolist()}; actions must be finite numbers in [-1, 1]")
+        a = np.clip(a, -1.0, 1.0)
+        if self.action_dim == 2:
+            tb = a[:, 1]
+            return a[:, 0], np.maximum(tb, 0.0), np.maximum(-tb, 0.0)
+        return a[:, 0], (a[:, 1] + 1.0) * 0.5, (a[:, 2] + 1.0) * 0.5
+
+    def step(self, action) -> None:
+        """One control step for every car (call :meth:`reset` for the cars that are done)."""
+        steer, throttle, brake = self.sanitize(action)
+        self.fleet.step(steer, throttle, brake)
+        s_old = self.s.copy()
+        self._locate()
+        progress = np.array([t.wrap_delta(self.s[i], s_old[i]) for i, t in enumerate(self.car_tracks)]) if self.n > 1 \
+            else self.car_tracks[0].wrap_delta(self.s, s_old)
+        self.time += self.dt
+        self.steps += 1
+        self.dist_raced += progress
+        self._laps()
+        better = self.dist_raced > self.best_dist
+        self.best_dist = np.where(better, self.dist_raced, self.best_dist)
+        self.best_dist_time = np.where(better, self.time, self.best_dist_time)
+        off = np.abs(self.track_pos) > 1.0
+        self.offtrack_time = np.where(off, self.offtrack_time + self.dt, 0.0)
+        reason = np.zeros(self.n, dtype=np.int64)
+        reason[off & (self.offtrack_time > self.offtrack_grace_s)] = 1
+        reason[(reason == 0) & (self.dist_raced < self.best_dist - self.backwards_m)] = 2
+        if self.no_progress_s is not None:
+            reason[(reason == 0) & (self.time - self.best_dist_time > self.no_progress_s)] = 3
+        reason[(reason == 0) & self.fleet.flipped] = 4
+        self.reason = reason
+        terminated = reason > 0
+        self.finished = (self.lap >= self.lap_limit) & ~terminated if self.lap_limit is not None else np.zeros(self.n, bool)
+        vx = self.fleet.vel_body[:, 0]
+        self.terms = Reward.terms(vx, self.angle, self.track_pos, progress, terminated)
+        self.rewards = self.reward(self.terms)
+        self.terminated = terminated
+        self.truncated = ~terminated & ((self.steps >= self.max_steps) | self.finished)
+        self._observe()
+
+    # ------------------------------------------------------------------ internals
+    def _locate(self, idx_reset: np.ndarray | None = None) -> None:
+        """Frenet position of every car and the surface under each wheel."""
+        fleet = self.fleet
+        pos = fleet.pos[:, :2]
+        wheels = fleet.wheel_xy  # [N, 4, 2]
+        pts = np.concatenate([pos[:, None, :], wheels], axis=1)  # [N, 5, 2]
+        hint = self.s
+        ids = np.empty((self.n, 4), dtype=np.int64)
+        groups = [np.arange(self.n)] if self.n == 1 else [np.flatnonzero([t is u for t in self.car_tracks])
+                                                            for u in {id(t): t for t in self.car_tracks}.values()]
+        for g in groups:
+            t = self.car_tracks[g[0]]
+            s, d = t.project(pts[g], s_hint=np.repeat(hint[g, None], 5, axis=1), window_m=15.0)
+            wl, wr = t.width(s)
+            sid = t.surface(s[:, 1:])
+            on = (d[:, 1:] <= wl[:, 1:]) & (d[:, 1:] >= -wr[:, 1:])
+            ids[g] = np.where(on, sid, _surf.GRASS_ID)
+            self.s[g] = s[:, 0]
+            self.d[g] = d[:, 0]
+            self.track_pos[g] = np.where(d[:, 0] >= 0.0, d[:, 0] / wl[:, 0], d[:, 0] / wr[:, 0])
+            self.angle[g] = (fleet.yaw[g] - t.heading(s[:, 0]) + math.pi) % (2.0 * math.pi) - math.pi
+        fleet.set_wheel_surfaces(ids)
+
+    def _laps(self) -> None:
+        lengths = np.array([t.length for t in self.car_tracks]) if self.n > 1 else self.car_tracks[0].length
+        laps = np.floor((self.s0 + self.dist_raced) / lengths).astype(np.int64)
+        done = laps > self.lap
+        if done.any():
+            i = np.flatnonzero(done)
+            lap_time = self.time[i] - self.lap_start_time[i]
+            timed = self.lap_timed[i]
+            self.last_lap_time[i] = np.where(timed, lap_time, self.last_lap_time[i])
+            best = self.best_lap_time[i]
+            self.best_lap_time[i] = np.where(timed & ((best == 0) | (lap_time < best)), lap_time, best)
+            self.lap_start_time[i] = self.time[i]
+            self.lap_timed[i] = True
+        self.lap = np.maximum(self.lap, laps)
+
+    def _observe(self) -> None:
+        obs = {}
+        fleet = self.fleet
+        if "rangefinder" in self.sensors:
+            on = np.abs(self.track_pos) <= 1.0
+            obs["rangefinder"] = self.rangefinder.read(self.slot, fleet.pos[:, :2], fleet.yaw, on)
+        if "state" in self.sensors:
+            v = fleet.vel_body * MS_TO_KMH
+            st = np.empty((self.n, len(STATE_SLOTS)), dtype=np.float32)
+            st[:, 0] = self.angle
+            st[:, 1] = self.track_pos
+            st[:, 2:5] = v
+            st[:, 5:9] = fleet.wheel_omega
+            st[:, 9] = fleet.rpm
+            st[:, 10] = fleet.gear
+            obs["state"] = st
+        if self.camera is not None:
+            obs.update(self.camera.render())
+        self.obs = obs
+
+    def info(self) -> dict[str, np.ndarray]:
+        """Per-car bookkeeping ``[N]`` (TORCS names, SI units) and the reward terms."""
+        cur = np.where(self.lap_timed, self.time - self.lap_start_time, 0.0)
+        out = {
+            "distFromStart": self.s.copy(), "distRaced": self.dist_raced.copy(), "lap": self.lap.copy(),
+            "curLapTime": cur, "lastLapTime": self.last_lap_time.copy(), "bestLapTime": self.best_lap_time.copy(),
+        }
+        for k, name in enumerate(REWARD_TERMS):
+            out[f"reward_{name}"] = self.terms[k].copy()
+        return out
+
+    def close(self) -> None:
+        if self.rangefinder is not None:
+            self.rangefinder.close()
+        if self.camera is not None and hasattr(self.camera, "close"):
+            self.camera.close()
+        if self.client is not None:
+            try:
+                p.disconnect(physicsClientId=self.client)
+            except p.error:
+                pass
+            self.client = None
+
+
+class RaceEnv(gym.Env, EzPickle):
+    """Race a full-size car round a track, seen through TORCS-style sensors.
+
+    ## Description
+    A raycast car (pybullet; ~1,100 kg, 2.6 m wheelbase, tyre forces from slip scaled by the grip
+    of the surface under each wheel) drives on a bundled or generated track. The task is to drive
+    fast without leaving the track, as in the TORCS studies (Summers 2022, Andersson et al.).
+
+    ## Action Space
+    ``Box(-1, 1, (2,), float32)`` with ``action_mode="combined"`` (default):
+
+    | index | action         | range   | meaning                                                  |
+    |-------|----------------|---------|----------------------------------------------------------|
+    | 0     | steer          | [-1, 1] | road-wheel angle as a fraction of full lock; +1 = left    |
+    | 1     | throttle_brake | [-1, 1] | > 0: throttle fraction; < 0: brake fraction (pedal)       |
+
+    ``action_mode="separate"``: ``Box(-1, 1, (3,))`` = steer, throttle, brake, with pedals mapped
+    from [-1, 1] to [0, 1]. Finite out-of-range values are clipped; a NaN or infinite action, or
+    one of the wrong shape, raises ``ValueError`` and the physics is not touched. The gearbox is
+    automatic.
+
+    ## Observation Space
+    ``Dict`` with the keys chosen by ``sensors`` (default ``("rangefinder", "state")``):
+
+    - ``rangefinder``: ``Box(-1, 200, (19,), float32)`` [m] — distance to the track edge along beams at
+      −90, −75, −60, −45, −30, −20, −15, −10, −5, 0, 5, 10, 15, 20, 30, 45, 60, 75, 90° from the car's
+      heading (positive = left); all −1 while off the track.
+    - ``state``: ``Box((11,), float32)``, slots (:data:`torcsrl.envs.sensors.STATE_SLOTS`):
+      angle_rad [rad] (car vs track axis), trackPos [-] (0 centre, ±1 edges, > 0 left),
+      speedX/Y/Z_kmh [km/h] (car frame: forward, left, up), wheelSpinVel fl/fr/rl/rr [rad/s],
+      rpm [1/min], gear [-].
+    - ``pixels`` ``Box(0, 255, (3, H, W), uint8)`` and ``depth`` ``Box(0, far, (1, H, W), float32)`` [m]
+      from the car-mounted camera, when requested.
+
+    Normalised versions (divide by :func:`torcsrl.envs.sensors.obs_scale`) are in [−1, 1].
+
+    ## Rewards
+    ``reward_scale · Σ weight · term`` over the named terms of :mod:`torcsrl.envs.rewards`
+    (speed_cos, speed_sin, track_pos, progress, termination); the default preset is Summers 2022's
+    final reward v_x (cos θ − |sin θ|) [m/s] with −1 on termination. Each term is in ``info``.
+
+    ## Starting State
+    At rest on the start/finish line (``start="grid"``) or at a uniformly drawn arc length
+    (``start="random"``), optionally jittered laterally and in yaw (``spawn_jitter``). With several
+    tracks (or surfaces) one is drawn per episode from the env's seed.
+
+    ## Episode End
+    *Terminated*: off the track (|trackPos| > 1) for longer than ``offtrack_grace_s``; driving
+    ``backwards_m`` backwards from the furthest point reached; no new furthest point for
+    ``no_progress_s``; the car flipped. *Truncated*: ``max_steps`` control steps, or
+    ``lap_limit`` laps completed (``info["finished"]`` is then True). Never both.
+
+    ## Info
+    distFromStart [m], distRaced [m], lap (completed laps), curLapTime, lastLapTime, bestLapTime [s]
+    (0 until set, as in TORCS), ``reward_<term>`` for every reward term, ``termination``
+    (the reason, "" if none), ``finished``, ``track``, ``surface``.
+
+    ## Arguments
+    See :class:`RaceCore` (every keyword is passed through), plus ``render_mode`` (``"rgb_array"``:
+    a top-down 400×400 frame of the track and the car).
+
+    ## Version History
+    - v0: initial version.
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
+
+    def __init__(self, render_mode: str | None = None, **kwargs: Any) -> None:
+        EzPickle.__init__(self, render_mode=render_mode, **kwargs)
+        if kwargs.get("num_cars", 1) != 1:
+            raise ValueError("the gymnasium RaceEnv drives one car; use torcsrl.envs.make_env(num_cars=N) for a batch")
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"unknown render_mode {render_mode!r}; allowed: rgb_array")
+        self.render_mode = render_mode
+        self.core = RaceCore(**kwargs)
+        self.metadata = dict(self.metadata, render_fps=int(round(1.0 / self.core.dt)))
+        self.action_space = spaces.Box(-1.0, 1.0, (self.core.action_dim,), np.float32)
+        obs_spaces = {}
+        for key, shape in self.core.observation_shapes.items():
+            if key == "rangefinder":
+                obs_spaces[key] = spaces.Box(-1.0, self.core.rangefinder.range_m, shape, np.float32)
+            elif key == "state":
+                obs_spaces[key] = spaces.Box(-np.inf, np.inf, shape, np.float32)
+            elif key == "pixels":
+                obs_spaces[key] = spaces.Box(0, 255, shape, np.uint8)
+            elif key == "depth":
+                obs_spaces[key] = spaces.Box(0.0, np.inf, shape, np.float32)
+        self.observation_space = spaces.Dict(obs_spaces)
+        self._seeded = False
+
+    def _obs(self) -> dict[str, np.ndarray]:
+        return {k: v[0] for k, v in self.core.obs.items()}
+
+    def _info(self) -> dict[str, Any]:
+        c = self.core
+        info = {k: (int(v[0]) if k == "lap" else float(v[0])) for k, v in c.info().items()}
+        info["termination"] = TERMINATION_REASONS[int(c.reason[0])]
+        info["finished"] = bool(c.finished[0])
+        info["track"] = c.car_tracks[0].name
+        info["surface"] = c.car_tracks[0].default_surface
+        return info
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        if seed is not None or not self._seeded:
+            self.core.seed(seed if seed is not None else int(self.np_random.integers(2**31)))
+            self._seeded = True
+        self.core.reset()
+        return self._obs(), self._info()
+
+    def step(self, action):
+        self.core.step(np.asarray(action, dtype=np.float64).reshape(1, -1) if np.ndim(action) == 1 else action)
+        c = self.core
+        return self._obs(), float(c.rewards[0]), bool(c.terminated[0]), bool(c.truncated[0]), self._info()
+
+    def render(self):
+        if self.render_mode != "rgb_array":
+            return None
+        return render_top_down(self.core.car_tracks[0], self.core.fleet.pos[0, :2], float(self.core.fleet.yaw[0]))
+
+    def close(self) -> None:
+        if getattr(self, "core", None) is not None:
+            self.core.close()
+            self.core = None
+
+
+_BACKGROUNDS: dict = {}
+
+
+def render_top_down(track, xy: np.ndarray, yaw: float, size: int = 400) -> np.ndarray:
+    """A top-down RGB frame ``[size, size, 3]`` uint8 of ``track`` with the car at ``xy``, ``yaw``."""
+    import cv2
+
+    lo = np.minimum(track.left_edge.min(0), track.right_edge.min(0)) - 10.0
+    hi = np.maximum(track.left_edge.max(0), track.right_edge.max(0)) + 10.0
+    scale = (size - 1) / float(np.max(hi - lo))
+
+    def px(pts):
+        q = (np.asarray(pts) - lo) * scale
+        return np.stack([q[..., 0], size - 1 - q[..., 1]], -1).astype(np.int32)
+
+    key = (id(track), size)
+    if key not in _BACKGROUNDS:
+        bg = np.empty((size, size, 3), dtype=np.uint8)
+        bg[:] = (_surf.COLORS[_surf.GRASS_ID] * 255).astype(np.uint8)
+        m = len(track)
+        for i in range(m):
+            j = (i + 1) % m
+            quad = px(np.stack([track.left_edge[i], track.left_edge[j], track.right_edge[j], track.right_edge[i]]))
+            cv2.fillConvexPoly(bg, quad, tuple(int(c) for c in _surf.COLORS[track.surface_ids[i]] * 255))
+        cv2.polylines(bg, [px(track.left_edge)], True, (255, 255, 255), 1)
+        cv2.polylines(bg, [px(track.right_edge)], True, (255, 255, 255), 1)
+        _BACKGROUNDS[key] = bg
+    img = _BACKGROUNDS[key].copy()
+    line = px(np.stack([track.to_world(0.0, track.w_left[0]), track.to_world(0.0, -track.w_right[0])]))
+    cv2.line(img, tuple(line[0]), tuple(line[1]), (220, 30, 30), 2)
+    c = px(xy)
+    tip = px(np.asarray(xy) + 12.0 / scale * np.array([math.cos(yaw), math.sin(yaw)]))
+    cv2.circle(img, tuple(c), 5, (230, 20, 20), -1)
+    cv2.line(img, tuple(c), tuple(tip), (255, 255, 0), 2)
+    return img

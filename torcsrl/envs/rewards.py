@@ -1,0 +1,86 @@
+"""Named reward terms and the presets of the studies.
+
+The scalar reward is ``scale · Σ weight[term] · term``; every term is reported in ``info``
+(gymnasium) or under ``("info", "reward_<term>")`` (TorchRL) so it can be logged. Speeds are in
+m/s, angles in radians, distances in metres.
+
+=============  ==========================================  =====================
+term           value per control step                       unit
+=============  ==========================================  =====================
+speed_cos      v_x · cos θ                                  m/s
+speed_sin      −v_x · |sin θ|                               m/s
+track_pos      −v_x · |trackPos|                            m/s
+progress       Δs along the centreline this step            m
+termination    1 on the step that terminates, else 0        –
+=============  ==========================================  =====================
+
+θ is the angle between the car and the track axis; v_x the car's forward speed.
+
+Presets (weights):
+- ``summers_initial`` (Summers 2022, first reward): v_x cos θ;
+- ``summers_final`` (Summers 2022, final): v_x (cos θ − |sin θ|), termination −1;
+- ``lau`` (Lau 2016 / Andersson et al.): v_x (cos θ − |sin θ| − |trackPos|), termination −500;
+- ``progress``: Δs per step, termination −1.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+
+REWARD_TERMS: tuple[str, ...] = ("speed_cos", "speed_sin", "track_pos", "progress", "termination")
+
+PRESETS: dict[str, dict[str, float]] = {
+    "summers_initial": {"speed_cos": 1.0},
+    "summers_final": {"speed_cos": 1.0, "speed_sin": 1.0, "termination": -1.0},
+    "lau": {"speed_cos": 1.0, "speed_sin": 1.0, "track_pos": 1.0, "termination": -500.0},
+    "progress": {"progress": 1.0, "termination": -1.0},
+}
+
+
+class Reward:
+    """Weighted sum of named terms.
+
+    Args:
+        weights: a preset name, or a mapping ``{term: weight}`` (missing terms weigh 0), or a
+            mapping with ``preset`` plus overrides, e.g. ``{"preset": "lau", "termination": -1}``.
+        scale: factor on the summed reward (e.g. 0.01 to keep returns near 1–100).
+    """
+
+    def __init__(self, weights: str | Mapping[str, float] = "summers_final", scale: float = 1.0) -> None:
+        if isinstance(weights, str):
+            if weights not in PRESETS:
+                raise ValueError(f"unknown reward preset {weights!r}; presets: {', '.join(PRESETS)}")
+            w = dict(PRESETS[weights])
+        elif isinstance(weights, Mapping):
+            weights = dict(weights)
+            preset = weights.pop("preset", None)
+            if preset is not None and preset not in PRESETS:
+                raise ValueError(f"unknown reward preset {preset!r}; presets: {', '.join(PRESETS)}")
+            w = dict(PRESETS[preset]) if preset else {}
+            unknown = [k for k in weights if k not in REWARD_TERMS]
+            if unknown:
+                raise ValueError(f"unknown reward terms {unknown}; terms: {', '.join(REWARD_TERMS)}")
+            w.update({k: float(v) for k, v in weights.items()})
+        else:
+            raise ValueError(f"reward must be a preset name or a mapping of term weights, got {weights!r}")
+        self.weights = {k: float(w.get(k, 0.0)) for k in REWARD_TERMS}
+        self._w = np.array([self.weights[k] for k in REWARD_TERMS])
+        self.scale = float(scale)
+
+    @staticmethod
+    def terms(vx, angle, track_pos, progress, terminated) -> np.ndarray:
+        """All terms ``[T, N]`` in :data:`REWARD_TERMS` order, from arrays ``[N]``."""
+        vx = np.asarray(vx, dtype=np.float64)
+        return np.stack([
+            vx * np.cos(angle),
+            -vx * np.abs(np.sin(angle)),
+            -vx * np.abs(track_pos),
+            np.asarray(progress, dtype=np.float64),
+            np.asarray(terminated, dtype=np.float64),
+        ])
+
+    def __call__(self, terms: np.ndarray) -> np.ndarray:
+        """Scalar rewards ``[N]`` from terms ``[T, N]``."""
+        return self.scale * (self._w @ terms)

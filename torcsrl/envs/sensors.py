@@ -1,0 +1,163 @@
+"""Clean sensors: the TORCS-style rangefinder and the named state vector.
+
+Sensors return ideal readings. Everything that corrupts them (noise, dropouts, latency, weather)
+is a transform in :mod:`torcsrl.transforms`.
+
+**rangefinder** ``[B]`` float32 [m]: distance from the car to the track edge along each beam, at
+angles :data:`RANGEFINDER_ANGLES_DEG` relative to the car's heading (positive = left), capped at
+:data:`RANGE_M`. While the car is off the track every beam reads ``-1`` (TORCS/SCR semantics).
+The beams are cast against the exact edge polylines (as vertical walls) in a pybullet client of
+their own, so they never interact with the cars' physics.
+
+**state** ``[S]`` float32, slots :data:`STATE_SLOTS` (TORCS names, units in the suffix).
+
+Normalised versions (as the studies fed their networks): divide each key by
+:func:`obs_scale` — rangefinder / 200 m (so [0, 1], −1/200 off track), angle / π, trackPos as is,
+speeds / 300 km/h, wheel spin / 150 rad/s, rpm / 10,000, gear / 6 — which maps a lap at racing
+speed into about [−1, 1]. :func:`normalize_transform` builds the TorchRL transform that does it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pybullet as p
+
+#: TORCS/SCR default beam angles [deg], relative to the car's heading (positive = left).
+RANGEFINDER_ANGLES_DEG: tuple[float, ...] = (-90, -75, -60, -45, -30, -20, -15, -10, -5, 0,
+                                             5, 10, 15, 20, 30, 45, 60, 75, 90)
+#: Rangefinder range [m].
+RANGE_M = 200.0
+#: Value of every beam while the car is off the track.
+OFF_TRACK_READING = -1.0
+
+#: Named slots of the "state" observation, with their units.
+STATE_SLOTS: tuple[str, ...] = (
+    "angle_rad",          # angle between the car's heading and the track axis, (−π, π], > 0 = car points left of the axis
+    "trackPos",           # 0 on the centreline, +1 at the left edge, −1 at the right edge, |.| > 1 off the track
+    "speedX_kmh",         # forward speed in the car's frame [km/h]
+    "speedY_kmh",         # leftward speed in the car's frame [km/h]
+    "speedZ_kmh",         # upward speed [km/h]
+    "wheelSpinVel_fl",    # front-left wheel spin [rad/s]
+    "wheelSpinVel_fr",    # front-right wheel spin [rad/s]
+    "wheelSpinVel_rl",    # rear-left wheel spin [rad/s]
+    "wheelSpinVel_rr",    # rear-right wheel spin [rad/s]
+    "rpm",                # engine speed [1/min]
+    "gear",               # engaged gear [-]
+)
+#: Divisors that bring each state slot to about [−1, 1].
+STATE_SCALE: dict[str, float] = {
+    "angle_rad": np.pi, "trackPos": 1.0, "speedX_kmh": 300.0, "speedY_kmh": 300.0, "speedZ_kmh": 300.0,
+    "wheelSpinVel_fl": 150.0, "wheelSpinVel_fr": 150.0, "wheelSpinVel_rl": 150.0, "wheelSpinVel_rr": 150.0,
+    "rpm": 10000.0, "gear": 6.0,
+}
+MS_TO_KMH = 3.6
+SENSOR_NAMES: tuple[str, ...] = ("rangefinder", "state", "pixels", "depth")
+
+
+def check_sensors(sensors) -> tuple[str, ...]:
+    """Validate a list of sensor names; ``ValueError`` names the allowed ones."""
+    if isinstance(sensors, str):
+        sensors = (sensors,)
+    sensors = tuple(sensors)
+    unknown = [s for s in sensors if s not in SENSOR_NAMES]
+    if unknown or not sensors:
+        raise ValueError(f"unknown sensors {unknown or '(none given)'}; allowed: {', '.join(SENSOR_NAMES)}")
+    if len(set(sensors)) != len(sensors):
+        raise ValueError(f"sensors listed twice: {sensors}")
+    return sensors
+
+
+def obs_scale(key: str, n_beams: int = len(RANGEFINDER_ANGLES_DEG)) -> np.ndarray:
+    """Divisors that normalise observation ``key`` (rangefinder or state)."""
+    if key == "rangefinder":
+        return np.full(n_beams, RANGE_M, dtype=np.float32)
+    if key == "state":
+        return np.array([STATE_SCALE[s] for s in STATE_SLOTS], dtype=np.float32)
+    raise ValueError(f"no scale for {key!r}; scales exist for rangefinder and state")
+
+
+def normalize_transform(keys=("rangefinder", "state"), n_beams: int = len(RANGEFINDER_ANGLES_DEG)):
+    """A TorchRL ``Compose`` of ``ObservationNorm`` dividing each key by :func:`obs_scale`."""
+    import torch
+    from torchrl.envs.transforms import Compose, ObservationNorm
+
+    ts = []
+    for k in keys:
+        scale = torch.as_tensor(1.0 / obs_scale(k, n_beams))
+        ts.append(ObservationNorm(loc=torch.zeros_like(scale), scale=scale, in_keys=[k], standard_normal=False))
+    return Compose(*ts)
+
+
+class Rangefinder:
+    """Beams from each car to the edges of its track, cast in a private pybullet client.
+
+    Args:
+        angles_deg: beam angles relative to the car's heading [deg] (positive = left).
+        range_m: maximum range [m].
+        height_m: height of the edge walls above and below the beam plane [m].
+    """
+
+    def __init__(self, angles_deg=RANGEFINDER_ANGLES_DEG, range_m: float = RANGE_M, height_m: float = 2.0) -> None:
+        a = np.radians(np.asarray(angles_deg, dtype=np.float64))
+        if a.ndim != 1 or len(a) < 1 or np.abs(a).max() > np.pi:
+            raise ValueError(f"rangefinder angles must be a list of degrees in [-180, 180], got {angles_deg}")
+        if not range_m > 0:
+            raise ValueError(f"rangefinder range must be positive [m], got {range_m}")
+        self.angles = a
+        self.range_m = float(range_m)
+        self.height_m = float(height_m)
+        self.client = p.connect(p.DIRECT)
+        self._bodies: dict[int, int] = {}  # track slot -> body
+        self._offsets: dict[int, np.ndarray] = {}
+
+    @property
+    def n_beams(self) -> int:
+        return len(self.angles)
+
+    def add_track(self, slot: int, track) -> None:
+        """Build the edge walls of ``track`` under ``slot``; each slot sits at its own offset."""
+        if slot in self._bodies:
+            return
+        offset = np.array([slot * 50_000.0, 0.0])
+        verts, tris, base = [], [], 0
+        for edge in (track.left_edge, track.right_edge):
+            m = len(edge)
+            e = edge + offset
+            verts.append(np.concatenate([np.c_[e, np.full(m, -self.height_m)], np.c_[e, np.full(m, self.height_m)]]))
+            i = np.arange(m)
+            j = (i + 1) % m
+            tris.append(np.concatenate([np.stack([i, j, i + m], 1), np.stack([j, j + m, i + m], 1)]).ravel() + base)
+            base += 2 * m
+        shape = p.createCollisionShape(p.GEOM_MESH, vertices=np.concatenate(verts).tolist(),
+                                       indices=np.concatenate(tris).astype(int).tolist(),
+                                       flags=p.GEOM_FORCE_CONCAVE_TRIMESH, physicsClientId=self.client)
+        self._bodies[slot] = p.createMultiBody(0, shape, physicsClientId=self.client)
+        self._offsets[slot] = offset
+
+    def read(self, slots: np.ndarray, xy: np.ndarray, yaw: np.ndarray, on_track: np.ndarray) -> np.ndarray:
+        """Beam distances ``[N, B]`` float32 [m] for cars at ``xy [N,2]`` (track frame), ``yaw [N]``."""
+        n = len(xy)
+        out = np.full((n, self.n_beams), OFF_TRACK_READING, dtype=np.float32)
+        idx = np.flatnonzero(on_track)
+        if len(idx) == 0:
+            return out
+        origin = xy[idx] + np.stack([self._offsets[int(s)] for s in slots[idx]])
+        ang = yaw[idx, None] + self.angles[None, :]
+        k = len(idx) * self.n_beams
+        start = np.zeros((k, 3))
+        start[:, :2] = np.repeat(origin, self.n_beams, axis=0)
+        end = start.copy()
+        end[:, 0] += self.range_m * np.cos(ang).ravel()
+        end[:, 1] += self.range_m * np.sin(ang).ravel()
+        hits = p.rayTestBatch(start, end, physicsClientId=self.client)
+        frac = np.fromiter((h[2] for h in hits), dtype=np.float64, count=k)
+        out[idx] = (frac * self.range_m).reshape(len(idx), self.n_beams)
+        return out
+
+    def close(self) -> None:
+        if self.client is not None:
+            try:
+                p.disconnect(physicsClientId=self.client)
+            except p.error:
+                pass
+            self.client = None
