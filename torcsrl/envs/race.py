@@ -25,12 +25,14 @@ from gymnasium.utils import EzPickle
 from torcsrl.envs import surfaces as _surf
 from torcsrl.envs import tracks as _tracks
 from torcsrl.envs.rewards import REWARD_TERMS, Reward
-from torcsrl.envs.sensors import (MS_TO_KMH, RANGEFINDER_ANGLES_DEG, RANGE_M, STATE_SLOTS, Rangefinder,
+from torcsrl.envs.sensors import (MS_TO_KMH, RANGEFINDER_ANGLES_DEG, RANGE_M, STATE_BOUNDS, STATE_SLOTS, Rangefinder,
                                   check_sensors)
 from torcsrl.envs.vehicle import CarFleet, VehicleParams, make_ground
 
 ACTION_MODES = ("combined", "separate")
 START_MODES = ("grid", "random")
+#: Up to this many cars, cars are followed along their tracks in plain Python (faster there).
+SCALAR_LOCATE_MAX_CARS = 8
 #: Keys of the per-car bookkeeping reported in ``info`` (TORCS names; SI units).
 INFO_KEYS: tuple[str, ...] = ("distFromStart", "distRaced", "lap", "curLapTime", "lastLapTime", "bestLapTime")
 TERMINATION_REASONS: tuple[str, ...] = ("", "off_track", "backwards", "no_progress", "flipped")
@@ -149,6 +151,7 @@ class RaceCore:
         self.car_tracks = [self._variant(0, self.surfaces[0])] * n
         self.s = np.zeros(n)
         self.d = np.zeros(n)
+        self.chord = np.zeros(n, dtype=np.int64)  # centreline chord the car was last on
         self.s0 = np.zeros(n)  # spawn arc length
         self.dist_raced = np.zeros(n)
         self.best_dist = np.zeros(n)
@@ -218,6 +221,7 @@ class RaceCore:
             yaw[j] = float(t.heading(s0)) + yj
             self.s0[i] = s0
             self.s[i] = s0
+            self.chord[i] = int(t._locate(s0)[0])
         self.fleet.reset(idx, xy, yaw, 0.0)
         for name in ("dist_raced", "best_dist", "best_dist_time", "time", "lap_start_time", "last_lap_time",
                      "best_lap_time", "offtrack_time"):
@@ -285,27 +289,59 @@ class RaceCore:
 
     # ------------------------------------------------------------------ internals
     def _locate(self, idx_reset: np.ndarray | None = None) -> None:
-        """Frenet position of every car and the surface under each wheel."""
+        """Frenet position of every car and the surface under each wheel (exact projection).
+
+        Few cars: each point is followed chord by chord from the car's previous chord in plain
+        Python (a few µs). Many cars: one vectorised projection per track, windowed around the
+        previous arc length.
+        """
         fleet = self.fleet
-        pos = fleet.pos[:, :2]
+        pos = fleet.pos
         wheels = fleet.wheel_xy  # [N, 4, 2]
-        pts = np.concatenate([pos[:, None, :], wheels], axis=1)  # [N, 5, 2]
+        if self.n <= SCALAR_LOCATE_MAX_CARS:
+            ids = self._locate_scalar(pos, wheels, fleet.yaw)
+            if ids is not None:
+                fleet.set_wheel_surfaces(ids)
+                return
+        pts = np.concatenate([pos[:, None, :2], wheels], axis=1)  # [N, 5, 2]
         hint = self.s
         ids = np.empty((self.n, 4), dtype=np.int64)
         groups = [np.arange(self.n)] if self.n == 1 else [np.flatnonzero([t is u for t in self.car_tracks])
                                                             for u in {id(t): t for t in self.car_tracks}.values()]
         for g in groups:
             t = self.car_tracks[g[0]]
-            s, d = t.project(pts[g], s_hint=np.repeat(hint[g, None], 5, axis=1), window_m=15.0)
-            wl, wr = t.width(s)
-            sid = t.surface(s[:, 1:])
+            s, d = t.project(pts[g], s_hint=np.repeat(hint[g, None], 5, axis=1), window_m=8.0)
+            wl, wr, heading, sid = t.lookup(s)
             on = (d[:, 1:] <= wl[:, 1:]) & (d[:, 1:] >= -wr[:, 1:])
-            ids[g] = np.where(on, sid, _surf.GRASS_ID)
+            ids[g] = np.where(on, sid[:, 1:], _surf.GRASS_ID)
             self.s[g] = s[:, 0]
             self.d[g] = d[:, 0]
             self.track_pos[g] = np.where(d[:, 0] >= 0.0, d[:, 0] / wl[:, 0], d[:, 0] / wr[:, 0])
-            self.angle[g] = (fleet.yaw[g] - t.heading(s[:, 0]) + math.pi) % (2.0 * math.pi) - math.pi
+            self.angle[g] = (fleet.yaw[g] - heading[:, 0] + math.pi) % (2.0 * math.pi) - math.pi
+            self.chord[g] = t._locate(s[:, 0])[0]
         fleet.set_wheel_surfaces(ids)
+
+    def _locate_scalar(self, pos: np.ndarray, wheels: np.ndarray, yaw: np.ndarray) -> np.ndarray | None:
+        ids = np.empty((self.n, 4), dtype=np.int64)
+        grass = _surf.GRASS_ID
+        wl_ = wheels.tolist()
+        for i in range(self.n):
+            t = self.car_tracks[i]
+            r = t.track_point(float(pos[i, 0]), float(pos[i, 1]), int(self.chord[i]))
+            if r is None:
+                return None
+            s, d, chord, u = r
+            wl, wr, heading, _ = t.frame_at(chord, u)
+            self.s[i], self.d[i], self.chord[i] = s, d, chord
+            self.track_pos[i] = d / wl if d >= 0.0 else d / wr
+            self.angle[i] = (float(yaw[i]) - heading + math.pi) % (2.0 * math.pi) - math.pi
+            for k, (x, y) in enumerate(wl_[i]):
+                rw = t.track_point(x, y, chord)
+                if rw is None:
+                    return None
+                w_l, w_r, _, sid = t.frame_at(rw[2], rw[3])
+                ids[i, k] = sid if -w_r <= rw[1] <= w_l else grass
+        return ids
 
     def _laps(self) -> None:
         lengths = np.array([t.length for t in self.car_tracks]) if self.n > 1 else self.car_tracks[0].length
@@ -396,7 +432,7 @@ class RaceEnv(gym.Env, EzPickle):
     - ``state``: ``Box((11,), float32)``, slots (:data:`torcsrl.envs.sensors.STATE_SLOTS`):
       angle_rad [rad] (car vs track axis), trackPos [-] (0 centre, ±1 edges, > 0 left),
       speedX/Y/Z_kmh [km/h] (car frame: forward, left, up), wheelSpinVel fl/fr/rl/rr [rad/s],
-      rpm [1/min], gear [-].
+      rpm [1/min], gear [-]. Bounds: angle ±π, rpm [0, 20000], gear [0, 10], the rest ±1000.
     - ``pixels`` ``Box(0, 255, (3, H, W), uint8)`` and ``depth`` ``Box(0, far, (1, H, W), float32)`` [m]
       from the car-mounted camera, when requested.
 
@@ -448,7 +484,8 @@ class RaceEnv(gym.Env, EzPickle):
             if key == "rangefinder":
                 obs_spaces[key] = spaces.Box(-1.0, self.core.rangefinder.range_m, shape, np.float32)
             elif key == "state":
-                obs_spaces[key] = spaces.Box(-np.inf, np.inf, shape, np.float32)
+                lo, hi = np.array([STATE_BOUNDS[s] for s in STATE_SLOTS], dtype=np.float32).T
+                obs_spaces[key] = spaces.Box(lo, hi, dtype=np.float32)
             elif key == "pixels":
                 obs_spaces[key] = spaces.Box(0, 255, shape, np.uint8)
             elif key == "depth":
@@ -457,7 +494,10 @@ class RaceEnv(gym.Env, EzPickle):
         self._seeded = False
 
     def _obs(self) -> dict[str, np.ndarray]:
-        return {k: v[0] for k, v in self.core.obs.items()}
+        obs = {k: v[0] for k, v in self.core.obs.items()}
+        if "state" in obs:  # keep the observation inside its (very wide) physical bounds
+            np.clip(obs["state"], self.observation_space["state"].low, self.observation_space["state"].high, out=obs["state"])
+        return obs
 
     def _info(self) -> dict[str, Any]:
         c = self.core
@@ -477,7 +517,11 @@ class RaceEnv(gym.Env, EzPickle):
         return self._obs(), self._info()
 
     def step(self, action):
-        self.core.step(np.asarray(action, dtype=np.float64).reshape(1, -1) if np.ndim(action) == 1 else action)
+        a = np.asarray(action, dtype=np.float64)
+        if a.shape != self.action_space.shape:
+            names = "steer, throttle_brake" if self.core.action_dim == 2 else "steer, throttle, brake"
+            raise ValueError(f"action has shape {a.shape}; expected {self.action_space.shape} ({names})")
+        self.core.step(a[None])
         c = self.core
         return self._obs(), float(c.rewards[0]), bool(c.terminated[0]), bool(c.truncated[0]), self._info()
 

@@ -50,6 +50,12 @@ STATE_SCALE: dict[str, float] = {
     "wheelSpinVel_fl": 150.0, "wheelSpinVel_fr": 150.0, "wheelSpinVel_rl": 150.0, "wheelSpinVel_rr": 150.0,
     "rpm": 10000.0, "gear": 6.0,
 }
+#: Physical bounds of each state slot (the observation space's low/high).
+STATE_BOUNDS: dict[str, tuple[float, float]] = {
+    "angle_rad": (-np.pi, np.pi), "trackPos": (-1e3, 1e3), "speedX_kmh": (-1e3, 1e3), "speedY_kmh": (-1e3, 1e3),
+    "speedZ_kmh": (-1e3, 1e3), "wheelSpinVel_fl": (-1e3, 1e3), "wheelSpinVel_fr": (-1e3, 1e3),
+    "wheelSpinVel_rl": (-1e3, 1e3), "wheelSpinVel_rr": (-1e3, 1e3), "rpm": (0.0, 2e4), "gear": (0.0, 10.0),
+}
 MS_TO_KMH = 3.6
 SENSOR_NAMES: tuple[str, ...] = ("rangefinder", "state", "pixels", "depth")
 

@@ -18,6 +18,7 @@ smallest |d| (and, given ``s_hint``, searches only near the previous position).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -83,6 +84,7 @@ class Track:
         nxt = np.roll(self.xy, -1, axis=0)
         self._e = nxt - self.xy  # chord vectors [M, 2]
         self._seg_len = np.hypot(self._e[:, 0], self._e[:, 1])
+        self._inv_len = 1.0 / np.maximum(self._seg_len, 1e-12)
         if (self._seg_len < 1e-6).any():
             i = int(np.argmin(self._seg_len))
             raise TrackError(f"{self._where()}: repeated centreline point at index {i}")
@@ -116,14 +118,27 @@ class Track:
     def _locate(self, s) -> tuple[np.ndarray, np.ndarray]:
         """Chord index and chord parameter t ∈ [0, 1) for arc lengths ``s`` (wrapped)."""
         s = np.mod(np.asarray(s, dtype=np.float64), self.length)
-        i = np.searchsorted(self.s, s, side="right") - 1
-        i = np.clip(i, 0, len(self.s) - 1)
-        t = (s - self.s[i]) / self._seg_len[i]
-        return i, np.clip(t, 0.0, 1.0)
+        i = np.searchsorted(self.s, s, side="right") - 1  # s[0] = 0 and s < length: i in [0, M-1]
+        return i, (s - self.s[i]) * self._inv_len[i]
 
     def _interp(self, arr: np.ndarray, s) -> np.ndarray:
         i, t = self._locate(s)
-        return (1.0 - t) * arr[i] + t * np.roll(arr, -1)[i]
+        return arr[i] + t * self._delta(arr)[i]
+
+    def _delta(self, arr: np.ndarray) -> np.ndarray:
+        key = ("delta", id(arr))
+        d = self._cache.get(key)
+        if d is None:
+            d = self._cache[key] = np.roll(arr, -1) - arr
+        return d
+
+    def lookup(self, s) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(w_left [m], w_right [m], heading [rad], surface id) at ``s`` in one pass (the env's hot path)."""
+        i, t = self._locate(s)
+        wl = self.w_left[i] + t * self._delta(self.w_left)[i]
+        wr = self.w_right[i] + t * self._delta(self.w_right)[i]
+        n = self._n[i] + t[..., None] * (self._n_next[i] - self._n[i])
+        return wl, wr, np.arctan2(-n[..., 0], n[..., 1]), self.surface_ids[i]
 
     # ------------------------------------------------------------------ geometry
     def normal(self, s) -> np.ndarray:
@@ -238,27 +253,80 @@ class Track:
         with np.errstate(divide="ignore", invalid="ignore"):
             r1 = np.where(qq != 0.0, qc / qq, np.inf)
             r2 = np.where(qa != 0.0, qq / qa, np.inf)
-        best_d = np.full(len(p), np.inf)
-        best_s = np.zeros(len(p))
-        tol = 1e-9
-        for t in (r1, r2):
-            valid = (disc >= 0.0) & (t >= -tol) & (t <= 1.0 + tol)
-            t = np.clip(np.where(valid, t, 0.0), 0.0, 1.0)
-            nx = ax + t * bx
-            ny = ay + t * by
-            nn = np.hypot(nx, ny)
-            dd = ((qx - t * ex) * nx + (qy - t * ey) * ny) / nn
-            dd = np.where(valid, dd, np.inf)
-            j = np.argmin(np.abs(dd), axis=1)
-            rows = np.arange(len(p))
-            dj = dd[rows, j]
-            better = np.abs(dj) < np.abs(best_d)
-            best_d = np.where(better, dj, best_d)
-            sj = self.s[idx[rows, j]] + t[rows, j] * self._seg_len[idx[rows, j]]
-            best_s = np.where(better, sj, best_s)
+        t = np.stack([r1, r2], axis=-1)  # [P, K, 2] both roots of every chord
+        valid = (disc >= 0.0)[..., None] & (t >= -1e-9) & (t <= 1.0 + 1e-9)
+        t = np.minimum(np.maximum(np.where(valid, t, 0.0), 0.0), 1.0)
+        nx = ax[..., None] + t * bx[..., None]
+        ny = ay[..., None] + t * by[..., None]
+        dd = ((qx[..., None] - t * ex[..., None]) * nx + (qy[..., None] - t * ey[..., None]) * ny) / np.sqrt(nx * nx + ny * ny)
+        dd = np.where(valid, dd, np.inf).reshape(len(p), -1)
+        j = np.argmin(np.abs(dd), axis=1)
+        rows = np.arange(len(p))
+        best_d = dd[rows, j]
+        chord = idx[rows, j // 2]
+        best_s = self.s[chord] + t.reshape(len(p), -1)[rows, j] * self._seg_len[chord]
         ok = np.isfinite(best_d)
         best_s = np.mod(best_s, self.length)
         return best_s, np.where(ok, best_d, 0.0), ok
+
+    # ------------------------------------------------------------------ scalar fast path
+    def _py(self) -> tuple:
+        """The frame's arrays as Python lists (scalar indexing is ~10x cheaper than numpy's)."""
+        py = self._cache.get("py")
+        if py is None:
+            py = self._cache["py"] = (
+                self.xy[:, 0].tolist(), self.xy[:, 1].tolist(), self._e[:, 0].tolist(), self._e[:, 1].tolist(),
+                self._n[:, 0].tolist(), self._n[:, 1].tolist(), self._n_next[:, 0].tolist(), self._n_next[:, 1].tolist(),
+                self.s.tolist(), self._seg_len.tolist(), self.w_left.tolist(), self._delta(self.w_left).tolist(),
+                self.w_right.tolist(), self._delta(self.w_right).tolist(), self.surface_ids.tolist())
+        return py
+
+    def track_point(self, x: float, y: float, chord: int, max_steps: int = 64) -> tuple[float, float, int, float] | None:
+        """Exact projection of one point by walking chords from ``chord`` (a scalar fast path).
+
+        The point must be near ``chord`` (it is meant for following a car from one control step to
+        the next). Returns ``(s, d, chord, t)``, or ``None`` if the walk does not settle (then use
+        :meth:`project`). Solves the same chord quadratic as :meth:`project`, keeping the root that
+        is continuous with straight chords.
+        """
+        X, Y, EX, EY, NX, NY, MX, MY, S, L = self._py()[:10]
+        m = len(X)
+        i = chord % m
+        last = -1
+        for _ in range(max_steps):
+            qx, qy = x - X[i], y - Y[i]
+            ex, ey, ax, ay = EX[i], EY[i], NX[i], NY[i]
+            bx, by = MX[i] - ax, MY[i] - ay
+            qa = -(ex * by - ey * bx)
+            qb = (qx * by - qy * bx) - (ex * ay - ey * ax)
+            qc = qx * ay - qy * ax
+            disc = qb * qb - 4.0 * qa * qc
+            if disc < 0.0:
+                return None
+            sq = math.sqrt(disc)
+            qq = -0.5 * (qb + (sq if qb >= 0.0 else -sq))
+            if qq == 0.0:
+                return None
+            t = qc / qq
+            if t < 0.0 and last != (i - 1) % m:
+                last, i = i, (i - 1) % m
+                continue
+            if t > 1.0 and last != (i + 1) % m:
+                last, i = i, (i + 1) % m
+                continue
+            t = 0.0 if t < 0.0 else 1.0 if t > 1.0 else t
+            nx, ny = ax + t * bx, ay + t * by
+            d = ((qx - t * ex) * nx + (qy - t * ey) * ny) / math.sqrt(nx * nx + ny * ny)
+            s = S[i] + t * L[i]
+            return (s - self.length if s >= self.length else s), d, i, t
+        return None
+
+    def frame_at(self, chord: int, t: float) -> tuple[float, float, float, int]:
+        """(w_left [m], w_right [m], heading [rad], surface id) at a point of chord ``chord``."""
+        _, _, _, _, NX, NY, MX, MY, _, _, WL, DWL, WR, DWR, SID = self._py()
+        nx = NX[chord] + t * (MX[chord] - NX[chord])
+        ny = NY[chord] + t * (MY[chord] - NY[chord])
+        return WL[chord] + t * DWL[chord], WR[chord] + t * DWR[chord], math.atan2(-nx, ny), SID[chord]
 
     # ------------------------------------------------------------------ variants and checks
     def with_surface(self, name: str) -> "Track":

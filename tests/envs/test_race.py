@@ -1,0 +1,366 @@
+"""RaceEnv contract: gymnasium and TorchRL faces, sensors, rewards, episodes, bad input."""
+
+from __future__ import annotations
+
+import functools
+import math
+import pickle
+import warnings
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+import torcsrl.envs  # noqa: F401  (registers torcsrl/Race-v0)
+from torcsrl.envs import make_env
+from torcsrl.envs.race import RaceCore, RaceEnv
+from torcsrl.envs.rewards import PRESETS, REWARD_TERMS, Reward
+from torcsrl.envs.sensors import RANGEFINDER_ANGLES_DEG, STATE_SLOTS
+
+torch.set_num_threads(1)
+
+
+def _rollout_gym(env, seed, steps=60):
+    rng = np.random.default_rng(seed)
+    obs, _ = env.reset(seed=seed)
+    out = [np.concatenate([obs["rangefinder"], obs["state"]])]
+    for _ in range(steps):
+        a = np.array([rng.uniform(-0.3, 0.3), rng.uniform(0.2, 1.0)], np.float32)
+        obs, r, term, trunc, info = env.step(a)
+        out.append(np.concatenate([obs["rangefinder"], obs["state"], [r]]))
+        if term or trunc:
+            break
+    return out
+
+
+# ---------------------------------------------------------------- gymnasium face
+def test_gymnasium_check_env_passes_without_warnings():
+    from gymnasium.utils.env_checker import check_env
+
+    env = gym.make("torcsrl/Race-v0", track="oval").unwrapped
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_env(env, skip_render_check=False)
+    allow = ("pybullet",)  # nothing else may warn
+    bad = [str(w.message) for w in caught if not any(a in str(w.message) for a in allow)]
+    assert bad == []
+    env.close()
+
+
+def test_same_seed_same_rollout_and_different_seed_differs():
+    env = gym.make("torcsrl/Race-v0", track=["oval", "hairpins"], start="random", spawn_jitter=(1.0, 0.05))
+    a = _rollout_gym(env, 3)
+    b = _rollout_gym(env, 3)
+    c = _rollout_gym(env, 4)
+    assert len(a) == len(b) and all(np.array_equal(x, y) for x, y in zip(a, b))
+    assert not np.array_equal(a[0], c[0])
+    env.close()
+
+
+def test_gym_env_pickles_and_behaves_the_same():
+    env = gym.make("torcsrl/Race-v0", track="hairpins").unwrapped
+    clone = pickle.loads(pickle.dumps(env))
+    assert all(np.array_equal(x, y) for x, y in zip(_rollout_gym(env, 1, 30), _rollout_gym(clone, 1, 30)))
+    env.close()
+    clone.close()
+
+
+def test_observation_slots_and_rangefinder_geometry():
+    env = RaceEnv(track="oval")  # 14 m wide, 500 m straight from the start line
+    obs, info = env.reset(seed=0)
+    rf, st = obs["rangefinder"], obs["state"]
+    assert rf.shape == (len(RANGEFINDER_ANGLES_DEG),) and st.shape == (len(STATE_SLOTS),)
+    assert env.observation_space.contains(obs)
+    left, right = rf[RANGEFINDER_ANGLES_DEG.index(90)], rf[RANGEFINDER_ANGLES_DEG.index(-90)]
+    # beams at ±90° measure the half-widths (the car sits on the centreline), beam 0 sees down the straight
+    assert abs(left - 7.0) < 0.05 and abs(right - 7.0) < 0.05
+    assert rf[RANGEFINDER_ANGLES_DEG.index(0)] == pytest.approx(200.0)
+    # beam at 30°: hits the left edge 7 m away laterally -> 14 m along the beam
+    assert rf[RANGEFINDER_ANGLES_DEG.index(30)] == pytest.approx(14.0, abs=0.1)  # yaw on the grid is within 0.002 rad
+    assert abs(st[STATE_SLOTS.index("trackPos")]) < 0.01 and abs(st[STATE_SLOTS.index("angle_rad")]) < 0.01
+    assert info["lap"] == 0 and info["distRaced"] == 0.0
+    for _ in range(250):
+        obs, *_ = env.step(np.array([0.0, 0.6], np.float32))
+    st = obs["state"]
+    assert st[STATE_SLOTS.index("speedX_kmh")] > 50.0 and st[STATE_SLOTS.index("gear")] >= 1
+    assert st[STATE_SLOTS.index("rpm")] > 1000.0
+    # wheels spin at about v / r (r ~ 0.3 m): the front (undriven) ones roll freely
+    v = st[STATE_SLOTS.index("speedX_kmh")] / 3.6
+    assert 2.5 * v < st[STATE_SLOTS.index("wheelSpinVel_fl")] < 4.0 * v
+    env.close()
+
+
+def test_all_beams_read_minus_one_off_track_and_episode_terminates():
+    env = RaceEnv(track="oval", offtrack_grace_s=10.0)
+    env.reset(seed=0)
+    term = False
+    for _ in range(400):
+        obs, r, term, trunc, info = env.step(np.array([1.0, 0.6], np.float32))
+        if obs["state"][STATE_SLOTS.index("trackPos")] > 1.05:
+            break
+    assert (obs["rangefinder"] == -1.0).all()
+    assert not term  # the grace period holds it
+    env.close()
+    env = RaceEnv(track="oval")  # no grace
+    env.reset(seed=0)
+    for i in range(400):
+        obs, r, term, trunc, info = env.step(np.array([1.0, 0.6], np.float32))
+        if term or trunc:
+            break
+    assert term and not trunc and info["termination"] == "off_track"
+    assert abs(obs["state"][STATE_SLOTS.index("trackPos")]) > 1.0
+    assert info["reward_termination"] == 1.0
+    env.close()
+
+
+def test_truncation_at_the_step_limit_is_not_termination():
+    env = RaceEnv(track="oval", max_steps=25)
+    env.reset(seed=0)
+    for i in range(25):
+        _, _, term, trunc, _ = env.step(np.array([0.0, 0.4], np.float32))
+        assert not term
+        assert trunc == (i == 24)
+    env.close()
+
+
+def test_no_progress_terminates():
+    env = RaceEnv(track="oval", no_progress_s=2.0)
+    env.reset(seed=0)
+    for i in range(200):
+        _, _, term, trunc, info = env.step(np.array([0.0, 0.0], np.float32))
+        if term or trunc:
+            break
+    assert term and info["termination"] == "no_progress"
+    assert i == pytest.approx(100, abs=2)  # 2 s at 50 Hz
+    env.close()
+
+
+def test_driving_backwards_terminates():
+    core = RaceCore(track="oval", backwards_m=10.0)
+    core.reset()
+    t = core.car_tracks[0]
+    xy = t.to_world(100.0, 0.0)
+    core.fleet.reset([0], xy[None], [float(t.heading(100.0)) + math.pi], [15.0])
+    core.s[:] = 100.0
+    core.chord[:] = int(t._locate(100.0)[0])
+    for i in range(100):
+        core.step(np.array([[0.0, 0.2]]))
+        if core.terminated[0]:
+            break
+    assert core.terminated[0] and core.reason[0] == 2
+    assert core.dist_raced[0] < -10.0
+    core.close()
+
+
+# ---------------------------------------------------------------- rewards
+@pytest.mark.parametrize("preset", list(PRESETS))
+def test_reward_presets_match_their_formulas(preset):
+    vx, th, tp, ds = 30.0, 0.3, -0.4, 0.61
+    r = Reward(preset)
+    terms = Reward.terms(np.array([vx]), np.array([th]), np.array([tp]), np.array([ds]), np.array([False]))
+    value = float(r(terms)[0])
+    expected = {
+        "summers_initial": vx * math.cos(th),
+        "summers_final": vx * (math.cos(th) - abs(math.sin(th))),
+        "lau": vx * (math.cos(th) - abs(math.sin(th)) - abs(tp)),
+        "progress": ds,
+    }[preset]
+    assert value == pytest.approx(expected)
+    done = Reward.terms(np.array([vx]), np.array([th]), np.array([tp]), np.array([ds]), np.array([True]))
+    assert float(r(done)[0]) - value == pytest.approx(PRESETS[preset].get("termination", 0.0))
+
+
+def test_termination_penalty_and_scale_are_configurable():
+    r = Reward({"preset": "lau", "termination": -1.0}, scale=0.01)
+    t = Reward.terms(np.array([10.0]), np.array([0.0]), np.array([0.0]), np.array([0.2]), np.array([True]))
+    assert float(r(t)[0]) == pytest.approx(0.01 * (10.0 - 1.0))
+    assert Reward("lau").weights["termination"] == -500.0
+
+
+def test_env_reward_is_the_weighted_sum_of_the_logged_terms():
+    env = RaceEnv(track="oval", reward="lau", reward_scale=0.5)
+    env.reset(seed=0)
+    w = env.core.reward.weights
+    for _ in range(30):
+        _, r, *_, info = env.step(np.array([0.05, 0.8], np.float32))
+        assert r == pytest.approx(0.5 * sum(w[k] * info[f"reward_{k}"] for k in REWARD_TERMS))
+    assert info["reward_speed_cos"] > 0 and info["reward_progress"] > 0
+    env.close()
+
+
+# ---------------------------------------------------------------- track sets and starts
+def test_track_set_sampled_per_episode_from_the_seed():
+    env = RaceEnv(track="set:train")
+    seen = []
+    env.reset(seed=5)
+    for _ in range(12):
+        _, info = env.reset()
+        seen.append(info["track"])
+    env.reset(seed=5)
+    again = [env.reset()[1]["track"] for _ in range(12)]
+    assert seen == again and len(set(seen)) >= 3
+    env.close()
+
+
+def test_random_start_and_surface_override():
+    env = RaceEnv(track="rallycross", surface=["ice", "wet"], start="random")
+    env.reset(seed=0)
+    starts, surfs = set(), set()
+    for _ in range(8):
+        _, info = env.reset()
+        starts.add(round(info["distFromStart"], 1))
+        surfs.add(info["surface"])
+        assert set(np.unique(env.core.fleet.wheel_surfaces)) <= {1, 4}  # wet or ice, never the track's dirt
+    assert len(starts) == 8 and surfs == {"ice", "wet"}
+    env.close()
+
+
+# ---------------------------------------------------------------- TorchRL face
+def test_torchrl_env_specs_single_and_batched():
+    from torchrl.envs.utils import check_env_specs
+
+    env = make_env(track="oval", seed=0)
+    assert env.batch_size == torch.Size([])
+    check_env_specs(env)
+    env.close()
+    benv = make_env(track=["oval", "hairpins"], num_cars=4, seed=0)
+    assert benv.batch_size == torch.Size([4])
+    check_env_specs(benv)
+    benv.close()
+
+
+def test_torchrl_same_seed_same_rollout():
+    def roll(seed):
+        env = make_env(track="hairpins", start="random", seed=seed)
+        torch.manual_seed(0)
+        td = env.rollout(40, break_when_any_done=False)
+        env.close()
+        return td
+
+    a, b, c = roll(1), roll(1), roll(2)
+    assert torch.equal(a["next", "state"], b["next", "state"]) and torch.equal(a["action"], b["action"])
+    assert not torch.equal(a["state"][0], c["state"][0])
+
+
+def test_batched_partial_reset_keeps_the_other_cars():
+    env = make_env(track="oval", num_cars=3, seed=0)
+    td = env.reset()
+    act = torch.tensor([[0.0, 0.8]] * 3)
+    for _ in range(100):
+        td = env.step(td.set("action", act))["next"]
+    raced = td["info", "distRaced"].clone()
+    assert (raced > 5.0).all()
+    reset = torch.tensor([[False], [True], [False]])
+    td = env.reset(td.set("_reset", reset))
+    after = td["info", "distRaced"]
+    assert after[1] == 0.0 and torch.equal(after[0], raced[0]) and torch.equal(after[2], raced[2])
+    env.close()
+
+
+def test_batched_cars_do_not_collide_and_progress_independently():
+    throttle = torch.tensor([[0.0, 0.15], [0.0, 0.3], [0.0, 0.45], [0.0, 0.6]])
+    env = make_env(track="oval", num_cars=4, seed=0)  # all four start on the same grid spot
+    td = env.reset()
+    for _ in range(100):
+        td = env.step(td.set("action", throttle))["next"]
+    raced = td["info", "distRaced"].ravel()
+    assert (torch.diff(raced) > 0).all() and td["done"].sum() == 0
+    env.close()
+    # each car drives exactly as it would alone: nothing pushed it
+    solo = make_env(track="oval", seed=0)
+    td = solo.reset()
+    for _ in range(100):
+        td = solo.step(td.set("action", throttle[2]))["next"]
+    assert float(td["info", "distRaced"]) == pytest.approx(float(raced[2]), abs=1e-3)
+    solo.close()
+
+
+def test_parallel_env_and_collector():
+    from torchrl.collectors import Collector
+    from torchrl.envs import ParallelEnv
+
+    penv = ParallelEnv(2, functools.partial(make_env, track="oval", max_steps=30), mp_start_method="fork")
+    penv.set_seed(0)
+    td = penv.rollout(10)
+    assert td.batch_size == torch.Size([2, 10])
+    coll = Collector(penv, policy=None, frames_per_batch=40, total_frames=40)
+    for batch in coll:
+        assert batch.numel() == 40 and (batch["next", "info", "distRaced"] >= 0).any()
+    coll.shutdown()
+    if not penv.is_closed:
+        penv.close()
+
+
+def test_torchrl_env_pickles():
+    env = make_env(track="oval", seed=3)
+    clone = pickle.loads(pickle.dumps(env))
+    assert torch.equal(env.reset()["rangefinder"], clone.reset()["rangefinder"])
+    env.close()
+    clone.close()
+
+
+# ---------------------------------------------------------------- bad input
+def test_bad_input_messages():
+    with pytest.raises(ValueError, match=r"unknown sensors \['lidar'\]; allowed: rangefinder, state, pixels, depth"):
+        RaceEnv(sensors=("lidar",))
+    with pytest.raises(ValueError, match=r"unknown reward terms \['sped'\]; terms: speed_cos"):
+        RaceEnv(reward={"sped": 1.0})
+    with pytest.raises(ValueError, match="unknown reward preset 'summers'; presets: summers_initial"):
+        RaceEnv(reward="summers")
+    with pytest.raises(ValueError, match="unknown track 'monza'; available: "):
+        RaceEnv(track="monza")
+    with pytest.raises(ValueError, match="unknown surface 'lava'"):
+        RaceEnv(surface="lava")
+    env = RaceEnv(track="oval")
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"action has shape \(3,\); expected \(2,\)"):
+        env.step(np.zeros(3, np.float32))
+    before = env.core.fleet.pos.copy()
+    with pytest.raises(ValueError, match="action contains NaN or inf"):
+        env.step(np.array([np.nan, 0.5], np.float32))
+    assert np.array_equal(before, env.core.fleet.pos)  # physics untouched
+    obs, *_ = env.step(np.array([5.0, -7.0], np.float32))  # clipped, not rejected
+    assert np.isfinite(obs["state"]).all()
+    env.close()
+
+
+# ---------------------------------------------------------------- outside clients and rendering
+def test_plain_gymnasium_vector_loop_works_unchanged():
+    from gymnasium.wrappers import FlattenObservation
+
+    envs = gym.vector.SyncVectorEnv([lambda: FlattenObservation(gym.make("torcsrl/Race-v0", track="oval", max_steps=50))] * 2)
+    obs, _ = envs.reset(seed=0)
+    assert obs.shape == (2, 30)
+    total = np.zeros(2)
+    for _ in range(60):  # crosses an autoreset
+        obs, r, term, trunc, _ = envs.step(np.tile([0.0, 0.7], (2, 1)).astype(np.float32))
+        total += r
+    assert (total > 0).all()
+    envs.close()
+
+
+def test_render_rgb_array_top_down():
+    env = gym.make("torcsrl/Race-v0", track="hairpins", render_mode="rgb_array")
+    env.reset(seed=0)
+    frame = env.render()
+    assert frame.shape == (400, 400, 3) and frame.dtype == np.uint8
+    assert (np.abs(frame.astype(int) - [230, 20, 20]).sum(-1) < 10).sum() > 20  # the car is drawn
+    env.close()
+
+
+def test_scalar_and_vectorised_locate_agree():
+    core = RaceCore(track="hairpins", start="random", spawn_jitter=(4.0, 0.3))
+    core.reset()
+    rng = np.random.default_rng(0)
+    for _ in range(120):
+        core.step(np.array([[rng.uniform(-0.5, 0.5), 0.7]]))
+        if core.terminated[0] or core.truncated[0]:
+            core.reset()
+        s, d, ids = core.s.copy(), core.d.copy(), core.fleet.wheel_surfaces.copy()
+        t = core.car_tracks[0]
+        pts = np.concatenate([core.fleet.pos[:, None, :2], core.fleet.wheel_xy], axis=1)
+        s2, d2 = t.project(pts)
+        assert abs(t.wrap_delta(s2[0, 0], s[0])) < 1e-6 and abs(d2[0, 0] - d[0]) < 1e-6
+        assert np.array_equal(t.surface_at(pts[0, 1:]), ids[0])
+    core.close()
