@@ -24,7 +24,10 @@ from torchrl.envs import EnvBase
 from torcsrl.envs.race import INFO_KEYS, RaceCore
 from torcsrl.envs.rewards import REWARD_TERMS
 
-_FLOAT_INFO = tuple(k for k in INFO_KEYS if k != "lap") + tuple(f"reward_{t}" for t in REWARD_TERMS)
+# order matters: it is the column order of the info array built in _observation
+_FLOAT_INFO = ("distFromStart", "distRaced", "curLapTime", "lastLapTime", "bestLapTime") + tuple(
+    f"reward_{t}" for t in REWARD_TERMS)
+assert set(_FLOAT_INFO) | {"lap"} >= set(INFO_KEYS)
 
 
 class TorchRaceEnv(EnvBase):
@@ -81,23 +84,28 @@ class TorchRaceEnv(EnvBase):
             shape=b, device=self.device)
 
     # ------------------------------------------------------------------ helpers
-    def _t(self, x: np.ndarray, dtype=torch.float32) -> torch.Tensor:
-        t = torch.as_tensor(np.asarray(x), dtype=dtype)
-        if not self._batched:
-            t = t[0]
-        return t.to(self.device) if self.device.type != "cpu" else t
+    def _wrap(self, source: dict) -> TensorDict:
+        """A TensorDict of freshly made tensors, skipping the checks that cost more than the step."""
+        return TensorDict._new_unsafe(source, batch_size=self.batch_size, device=self.device)
+
+    def _t(self, x: np.ndarray) -> torch.Tensor:
+        t = torch.from_numpy(np.ascontiguousarray(x))
+        return t if self._batched else t[0]
 
     def _observation(self) -> dict[str, Any]:
         c = self.core
         out: dict[str, Any] = {}
         for k, v in c.obs.items():
-            out[k] = self._t(v, torch.uint8 if k == "pixels" else torch.float32)
-        info = c.info()
-        inf = {k: self._t(info[k][:, None]) for k in _FLOAT_INFO}
-        inf["lap"] = self._t(info["lap"][:, None], torch.int64)
-        inf["track_slot"] = self._t(c.slot[:, None], torch.int64)
-        inf["finished"] = self._t(c.finished[:, None], torch.bool)
-        out["info"] = inf
+            out[k] = self._t(v if k == "pixels" else v.astype(np.float32, copy=False))
+        cur = np.where(c.lap_timed, c.time - c.lap_start_time, 0.0)
+        floats = np.stack([c.s, c.dist_raced, cur, c.last_lap_time, c.best_lap_time, *c.terms], axis=1)
+        floats = self._t(floats.astype(np.float32))  # [(N,) 11]
+        info = {k: floats[..., j:j + 1] for j, k in enumerate(_FLOAT_INFO)}
+        ints = self._t(np.stack([c.lap, c.slot], axis=1))
+        info["lap"] = ints[..., 0:1]
+        info["track_slot"] = ints[..., 1:2]
+        info["finished"] = self._t(c.finished[:, None])
+        out["info"] = self._wrap(info)
         return out
 
     # ------------------------------------------------------------------ EnvBase API
@@ -114,20 +122,19 @@ class TorchRaceEnv(EnvBase):
         n = self.core.n
         td = self._observation()
         zeros = np.zeros((n, 1), dtype=bool)
-        td.update(done=self._t(zeros, torch.bool), terminated=self._t(zeros, torch.bool),
-                  truncated=self._t(zeros, torch.bool))
-        return TensorDict(td, batch_size=self.batch_size, device=self.device)
+        td.update(done=self._t(zeros), terminated=self._t(zeros.copy()), truncated=self._t(zeros.copy()))
+        return self._wrap(td)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get("action").detach().cpu().numpy().reshape(self.core.n, -1)
         c = self.core
         c.step(action)
         td = self._observation()
-        td["reward"] = self._t(c.rewards[:, None])
-        td["terminated"] = self._t(c.terminated[:, None], torch.bool)
-        td["truncated"] = self._t(c.truncated[:, None], torch.bool)
-        td["done"] = self._t((c.terminated | c.truncated)[:, None], torch.bool)
-        return TensorDict(td, batch_size=self.batch_size, device=self.device)
+        td["reward"] = self._t(c.rewards[:, None].astype(np.float32))
+        td["terminated"] = self._t(c.terminated[:, None])
+        td["truncated"] = self._t(c.truncated[:, None])
+        td["done"] = self._t((c.terminated | c.truncated)[:, None])
+        return self._wrap(td)
 
     def _set_seed(self, seed: int | None) -> None:
         self.core.seed(seed)

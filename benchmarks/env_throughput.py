@@ -1,0 +1,180 @@
+"""Env throughput: torcsrl's faces beside the raw physics of the same car and installed peers.
+
+    python benchmarks/env_throughput.py [--steps 3000] [--quick]
+
+One process, one thread, everything measured in the same run (ratios are what to compare; the
+machine is shared and absolute figures move). Observations: rangefinder + state. Peers are
+measured only when installed (``pip install -e ".[bench]"``): gymnasium CarRacing-v3 (needs box2d)
+and highway-env racetrack-v0 with its lidar observation.
+
+Goals (issue 4): >= 2,000 steps/s for one car; >= 5,000 car-steps/s batched at N = 32; the env
+step <= 1.5x the raw physics step of its own car.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+torch.set_num_threads(1)
+
+
+def _rate(step, n: int, reset=None, repeats: int = 3) -> float:
+    """Best-of-``repeats`` steps/s of ``step()`` called ``n`` times."""
+    best = 0.0
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        for _ in range(n):
+            if step() and reset is not None:
+                reset()
+        best = max(best, n / (time.perf_counter() - t0))
+    return best
+
+
+def raw_physics(n_cars: int, steps: int) -> float:
+    import pybullet as p
+
+    from torcsrl.envs.vehicle import CarFleet, make_ground
+
+    cid = p.connect(p.DIRECT)
+    make_ground(cid)
+    fleet = CarFleet(cid, n_cars)
+    fleet.reset(np.arange(n_cars), np.zeros((n_cars, 2)), np.zeros(n_cars), 20.0)
+    steer, thr, brk = np.zeros(n_cars), np.full(n_cars, 0.3), np.zeros(n_cars)
+    i = [0]
+
+    def step():
+        fleet.step(steer, thr, brk)
+        i[0] += 1
+        if i[0] % 500 == 0:  # keep the car on the flat ground near the origin, as the env does
+            fleet.reset(np.arange(n_cars), np.zeros((n_cars, 2)), np.zeros(n_cars), 20.0)
+        return False
+
+    r = _rate(step, steps) * n_cars
+    p.disconnect(cid)
+    return r
+
+
+def gym_env(steps: int) -> float:
+    import gymnasium as gym
+
+    import torcsrl.envs  # noqa: F401
+
+    env = gym.make("torcsrl/Race-v0", track="road_flow", disable_env_checker=True)
+    env.reset(seed=0)
+    a = np.array([0.0, 0.3], np.float32)
+
+    def step():
+        _, _, te, tr, _ = env.step(a)
+        return te or tr
+
+    r = _rate(step, steps, lambda: env.reset())
+    env.close()
+    return r
+
+
+def torchrl_env(n_cars: int, steps: int) -> float:
+    from torcsrl.envs import make_env
+
+    env = make_env(track="road_flow", num_cars=n_cars, seed=0, batched=n_cars > 1)
+    td = env.reset()
+    shape = (n_cars, 2) if n_cars > 1 else (2,)
+    td["action"] = torch.tensor([0.0, 0.3]).expand(shape).clone()
+    state = {"td": td}
+
+    def step():
+        _, nxt = env.step_and_maybe_reset(state["td"])
+        nxt["action"] = state["td"]["action"]
+        state["td"] = nxt
+        return False
+
+    r = _rate(step, steps) * n_cars
+    env.close()
+    return r
+
+
+def car_racing(steps: int) -> float | None:
+    try:
+        import gymnasium as gym
+
+        env = gym.make("CarRacing-v3")
+    except Exception:
+        return None
+    env.reset(seed=0)
+    a = np.array([0.0, 0.3, 0.0], np.float32)
+
+    def step():
+        _, _, te, tr, _ = env.step(a)
+        return te or tr
+
+    r = _rate(step, steps, lambda: env.reset(), repeats=1)
+    env.close()
+    return r
+
+
+def highway_racetrack(steps: int) -> float | None:
+    try:
+        import gymnasium as gym
+        import highway_env  # noqa: F401
+
+        env = gym.make("racetrack-v0", config={"observation": {"type": "LidarObservation"}})
+    except Exception:
+        return None
+    env.reset(seed=0)
+    a = env.action_space.sample() * 0
+
+    def step():
+        _, _, te, tr, _ = env.step(a)
+        return te or tr
+
+    r = _rate(step, steps, lambda: env.reset(), repeats=1)
+    env.close()
+    return r
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--steps", type=int, default=3000, help="control steps per measurement")
+    ap.add_argument("--quick", action="store_true", help="fewer steps and no peers (a smoke run)")
+    args = ap.parse_args(argv)
+    n = 300 if args.quick else args.steps
+    rows: list[tuple[str, float | None, str]] = []
+    phys1 = raw_physics(1, n)
+    rows.append(("raw physics, 1 car (CarFleet, 50 Hz, 4 x 200 Hz)", phys1, "car-steps/s"))
+    g = gym_env(n)
+    rows.append(("gymnasium RaceEnv, 1 car", g, "steps/s"))
+    t1 = torchrl_env(1, n)
+    rows.append(("TorchRL env, 1 car", t1, "steps/s"))
+    batched = {}
+    for k in (1, 8, 32):
+        batched[k] = torchrl_env(k, max(50, n // k))
+        rows.append((f"TorchRL batched env, N = {k}", batched[k], "car-steps/s"))
+    phys32 = raw_physics(32, max(50, n // 32))
+    rows.append(("raw physics, 32 cars", phys32, "car-steps/s"))
+    if not args.quick:
+        rows.append(("peer: CarRacing-v3 (gymnasium, box2d)", car_racing(min(n, 1000)), "steps/s"))
+        rows.append(("peer: highway-env racetrack-v0, lidar", highway_racetrack(min(n, 300)), "steps/s"))
+    print(f"\n{'what':55s} {'rate':>10s}  unit")
+    for name, rate, unit in rows:
+        print(f"{name:55s} {('%10.0f' % rate) if rate else '   (n/a)'}  {unit}")
+    print("\nratios")
+    print(f"  env step / raw physics step, 1 car (gymnasium): {phys1 / g:5.2f}x   (goal <= 1.5x)")
+    print(f"  env step / raw physics step, 1 car (TorchRL):   {phys1 / t1:5.2f}x")
+    print(f"  batched N=32 env / raw physics N=32:            {phys32 / batched[32]:5.2f}x")
+    print(f"  gymnasium env, 1 car:        {g:8.0f} steps/s     (goal >= 2,000)")
+    print(f"  batched env, N = 32:         {batched[32]:8.0f} car-steps/s (goal >= 5,000)")
+    for name, rate, _ in rows:
+        if name.startswith("peer") and rate:
+            print(f"  gymnasium RaceEnv / {name[6:]}: {g / rate:5.1f}x")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
