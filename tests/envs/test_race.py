@@ -364,3 +364,15 @@ def test_scalar_and_vectorised_locate_agree():
         assert abs(t.wrap_delta(s2[0, 0], s[0])) < 1e-6 and abs(d2[0, 0] - d[0]) < 1e-6
         assert np.array_equal(t.surface_at(pts[0, 1:]), ids[0])
     core.close()
+
+
+def test_memory_stays_flat_over_resets_and_steps():
+    import importlib.util
+    import pathlib
+
+    spec = importlib.util.spec_from_file_location("soak", pathlib.Path(__file__).parents[2] / "benchmarks" / "soak.py")
+    soak = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(soak)
+    r = soak.soak(resets=1000, steps=5000)
+    assert r["growth_mib"] < 5.0, r
+    assert r["reset_us"] < 5 * r["step_us"], r  # a reset costs about a step: the world is never reloaded
