@@ -376,3 +376,29 @@ def test_memory_stays_flat_over_resets_and_steps():
     r = soak.soak(resets=1000, steps=5000)
     assert r["growth_mib"] < 5.0, r
     assert r["reset_us"] < 5 * r["step_us"], r  # a reset costs about a step: the world is never reloaded
+
+
+def test_lap_limited_episode_with_the_expert_and_lap_bookkeeping():
+    from torcsrl.envs.expert import ExpertDriver
+
+    env = RaceEnv(track="oval", lap_limit=2, action_mode="separate", max_steps=20_000)
+    env.reset(seed=0)
+    core = env.core
+    expert = ExpertDriver(core.car_tracks[0], core.fleet.params)
+    expert.reset(0.0)
+    laps_seen, steps = [], 0
+    while True:
+        steer, throttle, brake = expert.act(core.fleet, 0)
+        obs, r, term, trunc, info = env.step(np.array([steer, 2 * throttle - 1, 2 * brake - 1], np.float32))
+        steps += 1
+        if info["lap"] > len(laps_seen):
+            laps_seen.append(info["lastLapTime"])
+        if term or trunc:
+            break
+    assert trunc and not term and info["finished"] and info["lap"] == 2
+    first, second = laps_seen
+    assert first > second > 0.0  # standing start vs flying lap
+    assert info["bestLapTime"] == pytest.approx(second)
+    assert info["distRaced"] == pytest.approx(2 * core.car_tracks[0].length, abs=3.0)
+    assert steps * core.dt == pytest.approx(first + second, abs=0.05)
+    env.close()
