@@ -1,0 +1,119 @@
+"""Networks (fused ensemble == separate nets, encoders) and exploration modules."""
+
+import math
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from torcsrl.agents.exploration import ActionNoise, ParamNoiseActor, StochasticBrake
+from torcsrl.agents.networks import Critic, DeterministicActor, EnsembleLinear, ObsEncoder, random_shift
+from torcsrl.envs.toy import make_toy_env
+
+
+def test_ensemble_linear_equals_separate_linears():
+    torch.manual_seed(0)
+    lin = EnsembleLinear(2, 5, 3)
+    x = torch.randn(7, 5)
+    y = lin(x)
+    for e in range(2):
+        torch.testing.assert_close(y[e], x @ lin.weight[e] + lin.bias[e])
+    x3 = torch.randn(2, 7, 5)
+    y3 = lin(x3)
+    for e in range(2):
+        torch.testing.assert_close(y3[e], x3[e] @ lin.weight[e] + lin.bias[e])
+
+
+def test_critic_member_matches_forward_and_has_no_param_grad():
+    env = make_toy_env()
+    keys = ["rangefinder", "state"]
+    critic = Critic(ObsEncoder(env.observation_spec, keys), 2, (16, 16), num_nets=2)
+    rf, st, a = torch.rand(4, 19) * 50, torch.zeros(4, 6), torch.rand(4, 2, requires_grad=True)
+    full = critic(rf, st, a)
+    m0 = critic.member(rf, st, a, index=0)
+    torch.testing.assert_close(full[0], m0)
+    m0.sum().backward()
+    assert a.grad is not None and a.grad.abs().sum() > 0
+    assert all(p.grad is None for p in critic.parameters())
+
+
+def test_encoder_scales_vectors_from_spec_bounds_and_takes_pixels():
+    env = make_toy_env(sensors=("rangefinder", "state", "pixels"), camera={"height": 32, "width": 32})
+    enc = ObsEncoder(env.observation_spec, ["rangefinder", "state", "pixels"], cnn_channels=(4, 4), feature_dim=8)
+    td = env.reset()
+    out = enc(td["rangefinder"][None], td["state"][None], td["pixels"][None])
+    assert out.shape == (1, 19 + 6 + 8)
+    # rangefinder bounds [-1, 200] map to [-1, 1]
+    assert out[0, :19].abs().max() <= 1.0 + 1e-6
+
+
+def test_encoder_rejects_unknown_key():
+    env = make_toy_env()
+    with pytest.raises(ValueError, match="not in the env's observation spec"):
+        ObsEncoder(env.observation_spec, ["lidar"])
+
+
+def test_random_shift_keeps_dtype_and_shape_and_moves_content():
+    g = torch.Generator().manual_seed(0)
+    img = torch.arange(2 * 3 * 8 * 8, dtype=torch.float32).reshape(2, 3, 8, 8).to(torch.uint8)
+    out = random_shift(img, 2, generator=g)
+    assert out.dtype == torch.uint8 and out.shape == img.shape
+    assert not torch.equal(out, img)
+    assert torch.equal(random_shift(img, 0), img)
+
+
+def _noise_td(n=1000):
+    return TensorDict({"action": torch.zeros(n, 2), "is_init": torch.zeros(n, 1, dtype=torch.bool)}, [n])
+
+
+def test_ou_noise_per_dim_mean_and_determinism():
+    torch.manual_seed(0)
+    lo, hi = -torch.ones(2), torch.ones(2)
+    ou = ActionNoise("ou", lo, hi, sigma=[0.3, 0.3], theta=[0.6, 1.0], mu=[0.0, 0.5])
+    td = _noise_td()
+    for _ in range(30):
+        td.set("action", torch.zeros(1000, 2))
+        ou(td)
+    a = td["action"]
+    assert abs(float(a[:, 0].mean())) < 0.05  # steer OU mean 0
+    assert abs(float(a[:, 1].mean()) - 0.5) < 0.05  # throttle OU mean 0.5
+    # stationary std of x <- 0.4 x + 0.3 eps is 0.3 / sqrt(1 - 0.16)
+    assert abs(float(a[:, 0].std()) - 0.3 / math.sqrt(0.84)) < 0.03
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        td2 = ou(_noise_td(4))
+    assert torch.equal(td2["action"], torch.zeros(4, 2))
+
+
+def test_gaussian_noise_is_clipped():
+    torch.manual_seed(0)
+    g = ActionNoise("gaussian", -torch.ones(2) * 10, torch.ones(2) * 10, sigma=1.0, clip=0.5)
+    td = g(TensorDict({"action": torch.zeros(5000, 2)}, [5000]))
+    assert float(td["action"].abs().max()) <= 0.5 + 1e-6
+    assert float(td["action"].abs().max()) > 0.49
+
+
+def test_stochastic_brake_rate():
+    torch.manual_seed(0)
+    b = StochasticBrake(prob=0.2, mu=0.3, sigma=0.0)
+    td = b(TensorDict({"action": torch.full((10000, 2), 0.7)}, [10000]))
+    braked = td["action"][:, 1] < 0
+    assert abs(float(braked.float().mean()) - 0.2) < 0.02
+    assert torch.allclose(td["action"][braked, 1], torch.tensor(-0.3))
+    assert torch.all(td["action"][:, 0] == 0.7)
+
+
+def test_param_noise_perturbs_and_adapts():
+    torch.manual_seed(0)
+    env = make_toy_env()
+    actor = DeterministicActor(ObsEncoder(env.observation_spec, ["rangefinder", "state"]), -torch.ones(2), torch.ones(2), (16,))
+    pn = ParamNoiseActor(actor, ["rangefinder", "state"], sigma=0.5, target_distance=1e-3, resample_frames=5)
+    td = TensorDict({"rangefinder": torch.rand(8, 19) * 50, "state": torch.zeros(8, 6)}, [8])
+    clean = actor(td["rangefinder"], td["state"])
+    out = pn(td.clone())["action"]
+    assert not torch.allclose(out, clean)
+    s0 = float(pn.sigma)
+    pn(td.clone())
+    assert float(pn.sigma) < s0  # distance above target -> sigma shrinks
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        torch.testing.assert_close(pn(td.clone())["action"], clean)

@@ -1,0 +1,142 @@
+"""Loss modules: gradient isolation, equality with TorchRL's DDPGLoss, TD3 target, C51 projection."""
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+from tensordict import TensorDict
+from torch import nn
+
+from torcsrl import agents
+from torcsrl.envs.toy import make_toy_env
+from torcsrl.objectives.d4pg import categorical_projection
+
+ALGO_CFG = OmegaConf.merge(
+    OmegaConf.load("conf/algo/base.yaml"),
+    {"name": "x", "actor_hidden": [16, 16], "critic_hidden": [16, 16], "encoder": {"cnn_channels": [4], "feature_dim": 8, "augment_shift": 2},
+     "policy_noise": 0.2, "v_min": -10.0, "v_max": 10.0},
+)
+
+
+def _batch(env, keys, n=8):
+    td = env.reset()
+    obs = {k: td[k].expand(n, *td[k].shape).clone() for k in keys}
+    for k in keys:
+        if obs[k].is_floating_point():
+            obs[k] = obs[k] + torch.rand_like(obs[k])
+    nxt = {k: v.clone() for k, v in obs.items()}
+    nxt.update(reward=torch.randn(n, 1), done=torch.zeros(n, 1, dtype=torch.bool), terminated=torch.zeros(n, 1, dtype=torch.bool))
+    return TensorDict({**obs, "action": torch.rand(n, 2) * 2 - 1, "next": nxt}, [n])
+
+
+@pytest.mark.parametrize("algo", agents.ALGOS)
+def test_gradients_reach_only_their_own_networks(algo):
+    torch.manual_seed(0)
+    keys = ["rangefinder", "state", "pixels"]
+    env = make_toy_env(sensors=keys, camera={"height": 16, "width": 16})
+    ag = agents.get(algo)
+    actor = ag.make_actor(ALGO_CFG, env, keys)
+    critic = ag.make_critic(ALGO_CFG, env, keys)
+    loss = ag.make_loss(ALGO_CFG, actor, critic, env, keys)
+    ag.make_target_updater(ALGO_CFG, loss)
+    batch = _batch(env, keys)
+
+    la, _ = loss.actor_loss(batch)
+    la.backward()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in actor.parameters())
+    assert all(p.grad is None for p in critic.parameters())
+    actor.zero_grad(set_to_none=True)
+
+    lq, _ = loss.value_loss(batch)
+    lq.backward()
+    assert all(p.grad is None for p in actor.parameters())
+    grads = [p.grad for p in critic.parameters()]
+    assert all(g is not None for g in grads) and sum(float(g.abs().sum()) for g in grads) > 0
+    # target networks never get gradients
+    assert all(not t.requires_grad for t in loss.target_qvalue_network_params.values(True, True))
+
+
+def test_ddpg_loss_equals_torchrl_ddpgloss():
+    from torchrl.modules import Actor, ValueOperator
+    from torchrl.objectives import DDPGLoss as TorchRLDDPGLoss
+
+    torch.manual_seed(0)
+    keys = ["rangefinder", "state"]
+    env = make_toy_env()
+    cfg = OmegaConf.merge(ALGO_CFG, {"encoder": {"augment_shift": 0}})
+    ag = agents.get("ddpg")
+    actor, critic = ag.make_actor(cfg, env, keys), ag.make_critic(cfg, env, keys)
+    ours = ag.make_loss(cfg, actor, critic, env, keys)
+    ag.make_target_updater(cfg, ours)
+
+    class OneCritic(nn.Module):
+        def forward(self, rf, st, a):
+            return critic(rf, st, a)[0]
+
+    ref = TorchRLDDPGLoss(Actor(actor, in_keys=keys, spec=env.action_spec), ValueOperator(OneCritic(), in_keys=[*keys, "action"]),
+                          loss_function="l2", delay_actor=False, delay_value=False)
+    ref.make_value_estimator(gamma=float(cfg.gamma))
+    batch = _batch(env, keys)
+    batch["next", "terminated"][:3] = True
+    batch["next", "done"][:3] = True
+    r = ref(batch.clone())
+    la, _ = ours.actor_loss(batch.clone())
+    lq, _ = ours.value_loss(batch.clone())
+    torch.testing.assert_close(la, r["loss_actor"])
+    torch.testing.assert_close(lq, r["loss_value"])
+
+
+def test_td3_target_is_clipped_double_q_with_terminal_mask():
+    torch.manual_seed(0)
+    keys = ["rangefinder", "state"]
+    env = make_toy_env()
+    cfg = OmegaConf.merge(ALGO_CFG, {"policy_noise": 0.0, "encoder": {"augment_shift": 0}})
+    ag = agents.get("td3")
+    actor, critic = ag.make_actor(cfg, env, keys), ag.make_critic(cfg, env, keys)
+    loss = ag.make_loss(cfg, actor, critic, env, keys)
+    ag.make_target_updater(cfg, loss)
+    batch = _batch(env, keys)
+    batch["next", "terminated"][0] = True
+    target, _ = loss._target(batch, batch["action"])
+    nxt = [batch["next", k] for k in keys]
+    q = critic(*nxt, actor(*nxt)).squeeze(-1)  # targets == online weights right after the updater's init
+    want = batch["next", "reward"].squeeze(-1) + cfg.gamma * q.min(0).values
+    want[0] = batch["next", "reward"][0, 0]
+    torch.testing.assert_close(target, want)
+
+
+def test_soft_update_moves_bound_target_networks():
+    torch.manual_seed(0)
+    keys = ["rangefinder", "state"]
+    env = make_toy_env()
+    ag = agents.get("td3")
+    actor, critic = ag.make_actor(ALGO_CFG, env, keys), ag.make_critic(ALGO_CFG, env, keys)
+    loss = ag.make_loss(ALGO_CFG, actor, critic, env, keys)
+    upd = ag.make_target_updater(OmegaConf.merge(ALGO_CFG, {"tau": 0.5}), loss)
+    x = [torch.rand(3, 19) * 50, torch.zeros(3, 6)]
+    before = loss.target_actor(*x).clone()
+    with torch.no_grad():
+        for p in actor.parameters():
+            p.add_(0.1)
+    upd.step()
+    after = loss.target_actor(*x)
+    assert not torch.allclose(before, after)
+    w_t = loss.target_actor.net[0].weight
+    w = actor.net[0].weight
+    torch.testing.assert_close(w_t, w - 0.05)
+
+
+def test_c51_projection_hand_computed():
+    support = torch.tensor([-2.0, -1.0, 0.0, 1.0, 2.0])
+    p = torch.tensor([[0.1, 0.2, 0.4, 0.2, 0.1], [0.0, 0.0, 1.0, 0.0, 0.0], [0.5, 0.0, 0.0, 0.0, 0.5]])
+    r = torch.tensor([0.5, 5.0, 0.0])
+    g = torch.tensor([0.5, 0.9, 0.0])  # last row: terminal
+    out = categorical_projection(p, r, g, support)
+    # row 0: Tz = 0.5 + 0.5 z = [-0.5, 0, 0.5, 1, 1.5]
+    #   -0.5 -> .5 on -1, .5 on 0 ; 0 -> 0 ; 0.5 -> .5 on 0, .5 on 1 ; 1 -> 1 ; 1.5 -> .5 on 1, .5 on 2
+    want0 = torch.tensor([0.0, 0.05, 0.05 + 0.2 + 0.2, 0.2 + 0.2 + 0.05, 0.05])
+    # row 1: Tz = 5 + 0.9 z clamps to 2 -> all mass on the top atom
+    want1 = torch.tensor([0.0, 0.0, 0.0, 0.0, 1.0])
+    # row 2: terminal, Tz = r = 0 for every atom -> all mass on 0
+    want2 = torch.tensor([0.0, 0.0, 1.0, 0.0, 0.0])
+    torch.testing.assert_close(out, torch.stack([want0, want1, want2]))
+    torch.testing.assert_close(out.sum(-1), torch.ones(3))

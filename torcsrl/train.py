@@ -1,0 +1,436 @@
+"""Train a racing driver: ``python -m torcsrl.train [algo=td3|ddpg|d4pg] [env=race|toy] [overrides]``.
+
+``main`` is a thin Hydra wrapper; :func:`train` does the work and returns the final metrics, so
+tests call it directly on a config composed with Hydra's ``compose`` API. The loop reads in the
+order the algorithm runs: env, agent (actor, critic), loss + target updater, behaviour policy,
+collector, buffer, optimisers; then collect -> extend -> update -> log -> validate -> checkpoint.
+
+``cfg.env`` holds exactly the keyword arguments of ``torcsrl.envs.make_env`` plus ``name``
+(``race`` or ``toy``); null values are left to make_env's defaults, and ``seed``/``device`` are
+added here (worker ``i`` of a multi-process collector gets ``seed + 1000 (i + 1)`` and, if
+``collector.worker_tracks`` is set, its own track).
+
+Resuming (``checkpoint.resume=latest`` or a path) restores networks, targets, optimisers,
+counters, every RNG (python, numpy, torch, the envs' generators), the exploration state, the
+collector's in-flight episode and the replay buffer: on CPU with the in-process collector the
+resumed run continues exactly as the uninterrupted one would have.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDict, TensorDictBase
+from torchrl.collectors import Collector, MultiSyncCollector
+from torchrl.data import LazyMemmapStorage, LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.envs import Compose, EnvBase, InitTracker, MultiStepTransform, RewardSum, TransformedEnv
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from torcsrl import agents
+from torcsrl.utils.checkpoint import (
+    CheckpointError,
+    checkpoint_path,
+    latest_checkpoint,
+    load_checkpoint,
+    prune,
+    save_checkpoint,
+    save_dir_atomically,
+)
+from torcsrl.utils.replay import TorchPrioritizedSampler
+from torcsrl.utils.logging import Progress, log_metrics, make_loggers, truncate_csv_after
+from torcsrl.utils.seeding import rng_state, seed_everything, set_rng_state
+from torcsrl.utils.threads import configure_threads
+
+NSTEP_TERMINATED = "nstep_terminated"  # ("next", ...) terminated flag at the END of the n-step window
+
+
+# ---------------------------------------------------------------------------------------
+# environments
+# ---------------------------------------------------------------------------------------
+def env_kwargs(env_cfg: Any, **override: Any) -> dict:
+    """make_env keyword arguments from ``cfg.env``: everything but ``name``; nulls left to make_env."""
+    d = OmegaConf.to_container(env_cfg, resolve=True) if isinstance(env_cfg, DictConfig) else dict(env_cfg)
+    d.update(override)
+    d.pop("name", None)
+    if d.get("sensors") is not None:
+        d["sensors"] = tuple(d["sensors"])
+    return {k: v for k, v in d.items() if v is not None}
+
+
+def build_base_env(name: str, kwargs: dict) -> EnvBase:
+    """``torcsrl.envs.make_env(**kwargs)`` for ``race``, ``make_toy_env(**kwargs)`` for ``toy`` (imported lazily)."""
+    if name == "toy":
+        from torcsrl.envs.toy import make_toy_env
+
+        return make_toy_env(**kwargs)
+    if name == "gym":  # any Gymnasium id (benchmarks): GymEnv(id), observation key "observation"
+        from torchrl.envs import GymEnv
+
+        env = GymEnv(kwargs["id"], device=kwargs.get("device", "cpu"))
+        if kwargs.get("seed") is not None:
+            env.set_seed(int(kwargs["seed"]))
+        return env
+    if name == "race":
+        try:
+            from torcsrl.envs import make_env
+        except ImportError as err:
+            raise RuntimeError(f"env.name=race needs torcsrl.envs.make_env, which cannot be imported ({err}); use env=toy meanwhile") from None
+        return make_env(**kwargs)
+    raise ValueError(f"unknown env.name {name!r}; known: race, toy, gym")
+
+
+def make_train_env(cfg: DictConfig, worker: int = -1) -> TransformedEnv:
+    """The training env of worker ``worker`` (-1: the in-process collector): InitTracker + RewardSum on top."""
+    override: dict = {"seed": int(cfg.seed) + 1000 * (worker + 1), "device": "cpu"}
+    tracks = cfg.collector.worker_tracks
+    if tracks:
+        override["track"] = tracks[max(worker, 0) % len(tracks)]
+    base = build_base_env(cfg.env.name, env_kwargs(cfg.env, **override))
+    return TransformedEnv(base, Compose(InitTracker(), RewardSum()))
+
+
+def make_eval_env(cfg: DictConfig) -> EnvBase:
+    """One car, the validation overrides, its own seed; no transforms (rewards are summed here)."""
+    override = dict(OmegaConf.to_container(cfg.eval.env, resolve=True) or {})
+    override.update(num_cars=1, seed=int(cfg.eval.seed), device="cpu", lap_limit=cfg.eval.lap_limit, max_steps=int(cfg.eval.max_steps))
+    return build_base_env(cfg.env.name, env_kwargs(cfg.env, **override))
+
+
+# ---------------------------------------------------------------------------------------
+# buffer and collector
+# ---------------------------------------------------------------------------------------
+def stored_keys(obs_keys: list[str]) -> list:
+    """What one transition keeps: observations, action, next observations, reward and end flags."""
+    return [*obs_keys, "action", *[("next", k) for k in obs_keys], ("next", "reward"), ("next", "done"), ("next", "terminated"), ("next", "truncated")]
+
+
+def transition_bytes(td: TensorDictBase) -> int:
+    """Bytes one stored transition takes (``td`` has one leading batch dim)."""
+    return int(sum(v.element_size() * v[0].numel() for v in td.values(True, True)))
+
+
+def make_buffer(cfg: DictConfig, run_dir: Path):
+    """TorchRL replay buffer: RAM (LazyTensorStorage) or disk (LazyMemmapStorage), optionally prioritized."""
+    b = cfg.buffer
+    if b.storage == "ram":
+        storage = LazyTensorStorage(int(b.size))
+    elif b.storage == "disk":
+        storage = LazyMemmapStorage(int(b.size), scratch_dir=str(b.path or Path(run_dir) / "buffer"))
+    else:
+        raise ValueError(f"unknown buffer.storage {b.storage!r}; known: ram, disk")
+    kw = dict(storage=storage, batch_size=int(cfg.algo.batch_size), priority_key="td_error")
+    if b.prioritized:  # TorchRL's PrioritizedSampler needs its C++ extension; see torcsrl/utils/replay.py
+        kw["sampler"] = TorchPrioritizedSampler(int(b.size), alpha=float(b.alpha), beta=float(b.beta))
+    return TensorDictReplayBuffer(**kw)
+
+
+def make_collector(cfg: DictConfig, env: EnvBase, policy) -> Collector | MultiSyncCollector:
+    """In-process Collector (num_workers = 0) or MultiSyncCollector over ``num_workers`` env processes."""
+    c = cfg.collector
+    kw = dict(frames_per_batch=int(c.frames_per_batch), total_frames=-1, init_random_frames=int(c.init_random_frames),
+              exploration_type=ExplorationType.RANDOM)
+    if int(c.num_workers) == 0:
+        return Collector(env, policy, track_traj_ids=False, **kw)
+    fns = [functools.partial(make_train_env, cfg, i) for i in range(int(c.num_workers))]
+    kw["frames_per_batch"] = kw["frames_per_batch"] * int(c.num_workers)
+    return MultiSyncCollector(fns, policy, **kw)
+
+
+# ---------------------------------------------------------------------------------------
+# validation
+# ---------------------------------------------------------------------------------------
+@torch.no_grad()
+def validate(env: EnvBase, policy, episodes: int, max_steps: int) -> dict[str, float]:
+    """Summers's protocol: deterministic policy, no noise, nothing stored, no updates."""
+    rewards, laps, lap_times = [], [], []
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        for _ in range(episodes):
+            ro = env.rollout(max_steps, policy, break_when_any_done=True)
+            rewards.append(float(ro["next", "reward"].sum()))
+            nxt_laps = ro["next"].get("laps", torch.zeros(ro.shape + (1,), dtype=torch.long)).reshape(-1)
+            laps.append(int(nxt_laps[-1]))
+            prev = torch.cat([torch.zeros(1, dtype=nxt_laps.dtype), nxt_laps[:-1]])
+            if "lap_time" in ro["next"].keys():
+                lap_times += ro["next", "lap_time"].reshape(-1)[nxt_laps > prev].tolist()
+    return {
+        "eval/reward": sum(rewards) / len(rewards),
+        "eval/laps": sum(laps) / len(laps),
+        "eval/lap_time": min(lap_times) if lap_times else float("nan"),
+        "eval/lap_time_mean": sum(lap_times) / len(lap_times) if lap_times else float("nan"),
+    }
+
+
+# ---------------------------------------------------------------------------------------
+# checkpoint state
+# ---------------------------------------------------------------------------------------
+@dataclass
+class Counters:
+    """Loop counters (all in the checkpoint)."""
+
+    frames: int = 0  # env steps collected
+    updates: int = 0  # gradient steps taken
+    episodes: int = 0  # training episodes finished
+    owed_updates: float = 0.0  # fractional updates carried between batches (utd_ratio)
+    next_eval: int = 0  # validate when episodes >= next_eval
+    next_ckpt: int = 0  # checkpoint when frames >= next_ckpt
+    next_log: int = 0  # log when frames >= next_log
+
+
+def _sim_state(env: EnvBase) -> dict | None:
+    base = getattr(env, "base_env", env)
+    return base.get_sim_state() if hasattr(base, "get_sim_state") else None
+
+
+def _set_sim_state(env: EnvBase, state: dict | None) -> None:
+    base = getattr(env, "base_env", env)
+    if state is not None and hasattr(base, "set_sim_state"):
+        base.set_sim_state(state)
+
+
+def expected_meta(cfg: DictConfig, env: EnvBase, obs_keys: list[str]) -> dict:
+    """What a checkpoint must have been written for: algorithm, observation layout, action size."""
+    nb = len(env.batch_size)
+    layout = ",".join(f"{k}:{'x'.join(str(d) for d in env.observation_spec[k].shape[nb:])}" for k in obs_keys)
+    return {"algo": cfg.algo.name, "obs_layout": layout, "action_dim": int(env.action_spec.shape[-1])}
+
+
+# ---------------------------------------------------------------------------------------
+# the loop
+# ---------------------------------------------------------------------------------------
+def _run_dir(cfg: DictConfig) -> Path:
+    if cfg.run_dir:
+        return Path(cfg.run_dir)
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        return Path(HydraConfig.get().runtime.output_dir)
+    except ValueError:  # not under @hydra.main
+        return Path("outputs") / "train" / cfg.algo.name / time.strftime("%Y-%m-%d_%H-%M-%S")
+
+
+def train(cfg: DictConfig) -> dict[str, Any]:
+    """Train ``cfg.algo`` on ``cfg.env``; returns the final metrics (and where things were written)."""
+    run_dir = _run_dir(cfg)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    ckpt_dir = run_dir / "checkpoints"
+    threads = configure_threads(cfg.threads, int(cfg.collector.num_workers))
+    seed_everything(int(cfg.seed))
+    agent = agents.get(cfg.algo.name)
+    obs_keys = list(cfg.obs_keys or cfg.env.sensors)
+    total = int(cfg.total_frames)
+
+    env = make_train_env(cfg)
+    actor = agent.make_actor(cfg.algo, env, obs_keys)
+    critic = agent.make_critic(cfg.algo, env, obs_keys)
+    loss = agent.make_loss(cfg.algo, actor, critic, env, obs_keys)
+    target_updater = agent.make_target_updater(cfg.algo, loss)
+    policy = agent.make_exploration(cfg.algo, actor, env, obs_keys)
+    optim = agent.make_optimizers(cfg.algo, loss)
+    buffer = make_buffer(cfg, run_dir)
+    nstep = MultiStepTransform(int(cfg.algo.n_steps), float(cfg.algo.gamma)) if int(cfg.algo.n_steps) > 1 else None
+    if nstep is not None:
+        loss.set_keys(terminated=NSTEP_TERMINATED)
+    collector = make_collector(cfg, env, policy)
+    eval_env = make_eval_env(cfg)
+    meta = expected_meta(cfg, env, obs_keys)
+    counters = Counters(next_eval=int(cfg.eval.every_episodes), next_ckpt=int(cfg.checkpoint.every_frames) or total,
+                        next_log=int(cfg.logger.every_frames))
+    if cfg.buffer.load:
+        buffer.loads(str(cfg.buffer.load))
+    if cfg.checkpoint.resume:
+        counters = _resume(cfg, ckpt_dir, meta, loss, optim, policy, collector, env, eval_env, buffer, nstep, run_dir)
+    loggers = make_loggers(cfg.logger.backends, run_dir, cfg.logger.exp_name, cfg.logger.wandb_project, cfg.logger.wandb_mode)
+    progress = Progress(total, enabled=bool(cfg.progress))
+    multi = int(cfg.collector.num_workers) > 0
+    print(f"[torcsrl] training {cfg.algo.name} on env={cfg.env.name} for {total} steps; outputs in {run_dir}", file=sys.stderr)
+
+    last: dict[str, Any] = {}
+    eval_metrics: dict[str, float] = {}
+    bytes_per_transition = 0
+    t_start = time.perf_counter()
+    t_win, f_win, u_win = t_start, counters.frames, counters.updates
+    ep_rewards, ep_laps = [], []
+    try:
+        batches = iter(collector)
+        while counters.frames < total:
+            # collect -> extend
+            data = next(batches)
+            done = data["next", "done"].squeeze(-1)
+            if done.any():
+                ep_rewards += data["next", "episode_reward"].squeeze(-1)[done].tolist()
+                if "laps" in data["next"].keys():
+                    ep_laps += data["next", "laps"].squeeze(-1)[done].tolist()
+                counters.episodes += int(done.sum())
+            store = data.select(*stored_keys(obs_keys))
+            if nstep is not None:
+                store.set(("next", NSTEP_TERMINATED), store.get(("next", "terminated")).clone())
+                store = nstep.inv(store)  # None until n_steps frames have been seen
+            if store is not None and store.numel():
+                store = store.reshape(-1)
+                buffer.extend(store)
+                bytes_per_transition = bytes_per_transition or transition_bytes(store)
+            counters.frames += data.numel()
+
+            # update (configurable update-to-data ratio after the warm-up)
+            if counters.frames >= int(cfg.learner.warmup_frames) and len(buffer) >= int(cfg.algo.batch_size):
+                counters.owed_updates += float(cfg.learner.utd_ratio) * data.numel()
+                for _ in range(int(counters.owed_updates)):
+                    batch = buffer.sample()
+                    last = agent.update(cfg.algo, loss, optim, target_updater, batch, counters.updates)
+                    if cfg.buffer.prioritized:
+                        buffer.update_tensordict_priority(batch)
+                    counters.updates += 1
+                counters.owed_updates -= int(counters.owed_updates)
+                if multi:
+                    collector.update_policy_weights_()
+
+            # log
+            if counters.frames >= counters.next_log:
+                now = time.perf_counter()
+                sps = (counters.frames - f_win) / max(now - t_win, 1e-9)
+                metrics = {k: float(v) for k, v in last.items()}
+                metrics.update({"train/frames": counters.frames, "train/episodes": counters.episodes, "train/buffer_size": len(buffer),
+                                "time/steps_per_s": sps, "time/updates_per_s": (counters.updates - u_win) / max(now - t_win, 1e-9),
+                                "time/elapsed_s": now - t_start})
+                if ep_rewards:
+                    metrics["train/episode_reward"] = sum(ep_rewards) / len(ep_rewards)
+                    if ep_laps:
+                        metrics["train/laps"] = sum(ep_laps) / len(ep_laps)
+                    ep_rewards, ep_laps = [], []
+                log_metrics(loggers, {k: v for k, v in metrics.items() if not k.startswith("time/")}, counters.frames)
+                log_metrics(loggers, {k: v for k, v in metrics.items() if k.startswith("time/")}, counters.frames)
+                progress.update(counters.frames, sps)
+                t_win, f_win, u_win = now, counters.frames, counters.updates
+                while counters.next_log <= counters.frames:
+                    counters.next_log += int(cfg.logger.every_frames)
+
+            # periodic deterministic validation
+            if counters.episodes >= counters.next_eval:
+                eval_metrics = validate(eval_env, policy, int(cfg.eval.episodes), int(cfg.eval.max_steps))
+                log_metrics(loggers, eval_metrics, counters.frames)
+                progress.eval_text = f"reward {eval_metrics['eval/reward']:.2f}, laps {eval_metrics['eval/laps']:.1f}"
+                while counters.next_eval <= counters.episodes:
+                    counters.next_eval += int(cfg.eval.every_episodes)
+
+            # checkpoint
+            if counters.frames >= counters.next_ckpt or counters.frames >= total:
+                _save(cfg, ckpt_dir, meta, counters, loss, optim, policy, collector, env, eval_env, buffer, nstep, threads)
+                every = int(cfg.checkpoint.every_frames) or total
+                while counters.next_ckpt <= counters.frames:
+                    counters.next_ckpt += every
+        progress.update(counters.frames, (counters.frames - f_win) / max(time.perf_counter() - t_win, 1e-9), force=True)
+        if cfg.buffer.save_at_end:
+            save_dir_atomically(run_dir / "buffer_final", lambda d: buffer.dumps(str(d)))
+    finally:
+        progress.close()
+        collector.shutdown()
+        for e in (env, eval_env):
+            if not e.is_closed:
+                e.close()
+        for lg in loggers if "loggers" in locals() else []:
+            exp = getattr(lg, "experiment", None)
+            for f in getattr(exp, "files", {}).values():
+                f.close()
+    wall = time.perf_counter() - t_start
+    result = {
+        "frames": counters.frames,
+        "updates": counters.updates,
+        "episodes": counters.episodes,
+        "wall_s": wall,
+        "bytes_per_transition": bytes_per_transition,
+        "run_dir": str(run_dir),
+        "checkpoint": str(latest_checkpoint(ckpt_dir)) if latest_checkpoint(ckpt_dir) else None,
+        **{k: float(v) for k, v in last.items()},
+        **eval_metrics,
+    }
+    print(f"[torcsrl] done: {counters.frames} steps, {counters.episodes} episodes in {wall:.1f} s; outputs in {run_dir}\n"
+          f"[torcsrl] last checkpoint: {result['checkpoint']}\n"
+          f"[torcsrl] resume: python -m torcsrl.train run_dir={run_dir} checkpoint.resume=latest total_frames=<more>", file=sys.stderr)
+    return result
+
+
+def _save(cfg, ckpt_dir, meta, counters, loss, optim, policy, collector, env, eval_env, buffer, nstep, threads) -> Path:
+    path = checkpoint_path(ckpt_dir, counters.frames)
+    buffer_dir = None
+    if cfg.checkpoint.buffer:
+        buffer_dir = save_dir_atomically(path.with_name(path.stem + "_buffer"), lambda d: buffer.dumps(str(d))).name
+    multi = isinstance(collector, MultiSyncCollector)
+    payload = {
+        "meta": meta,
+        "counters": asdict(counters),
+        "loss": loss.state_dict(),
+        "optim": {k: o.state_dict() for k, o in optim.items()},
+        "policy": policy.state_dict(),
+        "rng": rng_state(),
+        "collector": {} if multi else {
+            "state": collector.state_dict(),
+            "carrier": collector._carrier.to_dict(),
+            "env": _sim_state(env),
+        },
+        "eval_env": _sim_state(eval_env),
+        "nstep": None if nstep is None or nstep._buffer is None else {"data": nstep._buffer.to_dict(), "batch_size": list(nstep._buffer.batch_size)},
+        "buffer_dir": buffer_dir,
+        "threads": threads,
+        "config": OmegaConf.to_yaml(cfg),
+    }
+    save_checkpoint(path, payload)
+    prune(ckpt_dir, int(cfg.checkpoint.keep))
+    return path
+
+
+def _resume(cfg, ckpt_dir, meta, loss, optim, policy, collector, env, eval_env, buffer, nstep, run_dir) -> Counters:
+    path = latest_checkpoint(ckpt_dir) if cfg.checkpoint.resume == "latest" else Path(cfg.checkpoint.resume)
+    if path is None:
+        raise CheckpointError(f"checkpoint.resume=latest but {ckpt_dir} holds no checkpoint")
+    ck = load_checkpoint(path, expect=meta)
+    loss.load_state_dict(ck["loss"])
+    for k, o in optim.items():
+        o.load_state_dict(ck["optim"][k])
+    policy.load_state_dict(ck["policy"])
+    if ck["collector"]:
+        collector.load_state_dict(ck["collector"]["state"])
+        collector._carrier.update(TensorDict.from_dict(ck["collector"]["carrier"], batch_size=collector._carrier.batch_size))
+        _set_sim_state(env, ck["collector"]["env"])
+    else:
+        print("[torcsrl] resuming a multi-process collector: worker episodes restart (exact resume needs num_workers=0)", file=sys.stderr)
+    _set_sim_state(eval_env, ck["eval_env"])
+    if ck["buffer_dir"]:
+        buffer.loads(str(path.parent / ck["buffer_dir"]))
+    if nstep is not None and ck["nstep"] is not None:
+        nstep._buffer = TensorDict.from_dict(ck["nstep"]["data"], batch_size=ck["nstep"]["batch_size"])
+    if ck["threads"] != torch.get_num_threads():
+        print(f"[torcsrl] using the checkpoint's {ck['threads']} threads (float results depend on it)", file=sys.stderr)
+        torch.set_num_threads(int(ck["threads"]))
+    counters = Counters(**ck["counters"])
+    truncate_csv_after(run_dir, counters.frames)
+    set_rng_state(ck["rng"])
+    print(f"[torcsrl] resumed from {path} at {counters.frames} steps", file=sys.stderr)
+    return counters
+
+
+def main_entry() -> None:
+    import hydra
+
+    @hydra.main(config_path="../conf", config_name="train", version_base="1.3")
+    def main(cfg: DictConfig) -> None:
+        try:
+            train(cfg)
+        except (CheckpointError, ValueError, RuntimeError) as err:
+            if isinstance(err, RuntimeError) and not isinstance(err, CheckpointError) and "cannot be imported" not in str(err):
+                raise
+            print(f"torcsrl.train: error: {err}", file=sys.stderr)
+            sys.exit(2)
+
+    main()
+
+
+if __name__ == "__main__":
+    main_entry()

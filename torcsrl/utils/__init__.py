@@ -1,0 +1,1 @@
+"""Training helpers: seeding and RNG state, thread policy, atomic checkpoints, logging and progress."""
