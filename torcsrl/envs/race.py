@@ -33,6 +33,8 @@ ACTION_MODES = ("combined", "separate")
 START_MODES = ("grid", "random")
 #: Up to this many cars, cars are followed along their tracks in plain Python (faster there).
 SCALAR_LOCATE_MAX_CARS = 8
+#: Distance between the world origins of the tracks of one env [m].
+TRACK_SPACING_M = 10_000.0
 #: Keys of the per-car bookkeeping reported in ``info`` (TORCS names; SI units).
 INFO_KEYS: tuple[str, ...] = ("distFromStart", "distRaced", "lap", "curLapTime", "lastLapTime", "bestLapTime")
 TERMINATION_REASONS: tuple[str, ...] = ("", "off_track", "backwards", "no_progress", "flipped")
@@ -136,6 +138,9 @@ class RaceCore:
         self.dt = self.fleet.dt_control
         self.rangefinder = Rangefinder(rangefinder_angles_deg, rangefinder_range_m) if "rangefinder" in self.sensors else None
         self._geometry = [_tracks.load(name) for name in self.track_names]  # one slot per distinct entry
+        #: World origin [m] of each track slot: tracks lie 10 km apart, so that cameras never see
+        #: another slot's track, and each car drives at its own track's origin.
+        self.track_origins = np.array([[k * TRACK_SPACING_M, 0.0] for k in range(len(self._geometry))])
         self._variants: dict[tuple[int, str | None], Any] = {}
         if self.rangefinder is not None:
             for slot, t in enumerate(self._geometry):
@@ -222,7 +227,7 @@ class RaceCore:
             self.s0[i] = s0
             self.s[i] = s0
             self.chord[i] = int(t._locate(s0)[0])
-        self.fleet.reset(idx, xy, yaw, 0.0)
+        self.fleet.reset(idx, xy + self.track_origins[self.slot[idx]], yaw, 0.0)
         for name in ("dist_raced", "best_dist", "best_dist_time", "time", "lap_start_time", "last_lap_time",
                      "best_lap_time", "offtrack_time"):
             getattr(self, name)[idx] = 0.0
@@ -296,14 +301,15 @@ class RaceCore:
         previous arc length.
         """
         fleet = self.fleet
-        pos = fleet.pos
-        wheels = fleet.wheel_xy  # [N, 4, 2]
+        origin = self.track_origins[self.slot]  # [N, 2]
+        pos = fleet.pos[:, :2] - origin  # in each car's track frame
+        wheels = fleet.wheel_xy - origin[:, None, :]  # [N, 4, 2]
         if self.n <= SCALAR_LOCATE_MAX_CARS:
             ids = self._locate_scalar(pos, wheels, fleet.yaw)
             if ids is not None:
                 fleet.set_wheel_surfaces(ids)
                 return
-        pts = np.concatenate([pos[:, None, :2], wheels], axis=1)  # [N, 5, 2]
+        pts = np.concatenate([pos[:, None, :], wheels], axis=1)  # [N, 5, 2]
         hint = self.s
         ids = np.empty((self.n, 4), dtype=np.int64)
         groups = [np.arange(self.n)] if self.n == 1 else [np.flatnonzero([t is u for t in self.car_tracks])
@@ -363,7 +369,8 @@ class RaceCore:
         fleet = self.fleet
         if "rangefinder" in self.sensors:
             on = np.abs(self.track_pos) <= 1.0
-            obs["rangefinder"] = self.rangefinder.read(self.slot, fleet.pos[:, :2], fleet.yaw, on)
+            xy = fleet.pos[:, :2] - self.track_origins[self.slot]
+            obs["rangefinder"] = self.rangefinder.read(self.slot, xy, fleet.yaw, on)
         if "state" in self.sensors:
             v = fleet.vel_body * MS_TO_KMH
             st = np.empty((self.n, len(STATE_SLOTS)), dtype=np.float32)
@@ -528,7 +535,8 @@ class RaceEnv(gym.Env, EzPickle):
     def render(self):
         if self.render_mode != "rgb_array":
             return None
-        return render_top_down(self.core.car_tracks[0], self.core.fleet.pos[0, :2], float(self.core.fleet.yaw[0]))
+        c = self.core
+        return render_top_down(c.car_tracks[0], c.fleet.pos[0, :2] - c.track_origins[c.slot[0]], float(c.fleet.yaw[0]))
 
     def close(self) -> None:
         if getattr(self, "core", None) is not None:

@@ -1,0 +1,227 @@
+"""Throughput of the sensor degradations (torcsrl.transforms), one CPU thread.
+
+    python benchmarks/degradation_throughput.py [--peers DIR] [--reps N]
+
+Prints three tables:
+
+1. camera: images/s for every pixel degradation on 84x84 uint8 frames, severity 3,
+   * ``step B=1`` / ``step B=256``: inside an env (``_call``: episode draws already made,
+     step noise drawn each call) — the goal is >= 2,000 images/s at B=256;
+   * ``fresh B=256``: a replay-buffer sample (``forward``: new episode draws and masks for
+     every call).
+2. rangefinder / state: the cost per env-step of the full stack (every rangefinder degradation
+   at severity 3 composed, likewise for state) at B=256 and B=1 — goal <= 20 us per env-step at
+   B=256 — and each degradation alone.
+3. peers (albumentations, imagecorruptions), per frame, only where importable. ``--peers DIR``
+   (or $TORCSRL_PEERS) appends a folder of separately installed packages to ``sys.path``.
+
+Deterministic inputs and seeds; times are the median of ``--reps`` timings after one warm-up,
+in process CPU time (robust to other jobs on a shared machine; ``--wall`` for wall clock).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+from tensordict import TensorDict
+from torchrl.envs import Compose
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from torcsrl.transforms import degradation_names, make_degradation  # noqa: E402
+from torcsrl.transforms.synthetic import road_frame, track_scans  # noqa: E402
+
+H = W = 84
+GOAL_IMG_S = 2000
+GOAL_RF_US = 20.0
+
+
+CLOCK = time.process_time  # CPU time of this process: other jobs on a shared machine barely move it
+
+
+def _median_time(fn, reps: int, inner: int = 1) -> float:
+    """Median seconds per call of ``fn`` over ``reps`` timings of ``inner`` calls each."""
+    fn()  # warm-up
+    ts = []
+    for _ in range(reps):
+        t0 = CLOCK()
+        for _ in range(inner):
+            fn()
+        ts.append((CLOCK() - t0) / inner)
+    return statistics.median(ts)
+
+
+def _camera_td(B: int) -> TensorDict:
+    pix, depth = road_frame(H, W)
+    return TensorDict(
+        {"pixels": pix.expand(B, -1, -1, -1).clone(), "depth": depth.expand(B, -1, -1, -1).clone()}, [B]
+    )
+
+
+def _env_step_fn(t, td):
+    """Steady-state env step: reset once, then time ``_call`` on a shallow copy."""
+    t._reset(td.empty(), td.clone(False))
+    return lambda: t._call(td.clone(False))
+
+
+def bench_camera(reps: int) -> list[tuple]:
+    rows = []
+    td1, td256 = _camera_td(1), _camera_td(256)
+    for name in degradation_names("camera"):
+        t = make_degradation(name, 3, seed=0)
+        s1 = _median_time(_env_step_fn(t, td1), reps, inner=40)
+        t = make_degradation(name, 3, seed=0)
+        s256 = _median_time(_env_step_fn(t, td256), reps)
+        t = make_degradation(name, 3, seed=0)
+        f256 = _median_time(lambda: t(td256.clone(False)), reps)
+        rows.append((name, 1 / s1, 256 / s256, 256 / f256))
+    return rows
+
+
+def bench_vector(sensor: str, key: str, data_fn, reps: int) -> tuple[list, list]:
+    stack_rows, single_rows = [], []
+    names = degradation_names(sensor)
+    for B in (256, 1):
+        td = TensorDict({key: data_fn(B)}, [B])
+        stack = Compose(*[make_degradation(n, 3, seed=i) for i, n in enumerate(names)])
+        dt = _median_time(_env_step_fn(stack, td), reps, inner=20)
+        stack_rows.append((f"{sensor} stack ({len(names)})", B, dt * 1e6, dt * 1e6 / B))
+    for n in names:
+        us = []
+        for B in (256, 1):
+            td = TensorDict({key: data_fn(B)}, [B])
+            t = make_degradation(n, 3, seed=0)
+            us.append(_median_time(_env_step_fn(t, td), reps, inner=20) * 1e6)
+        single_rows.append((n, *us))
+    return stack_rows, single_rows
+
+
+# ------------------------------------------------------------------------ peers
+def _peer_frames(n: int):
+    import numpy as np
+
+    pix, _ = road_frame(H, W)
+    img = pix.permute(1, 2, 0).numpy()
+    return [np.ascontiguousarray(img) for _ in range(n)]
+
+
+def bench_albumentations(n: int) -> list[tuple]:
+    try:
+        import albumentations as A
+    except Exception as e:  # noqa: BLE001
+        return [("albumentations", f"not importable ({type(e).__name__})", None)]
+    import numpy as np
+
+    np.random.seed(0)
+    frames = _peer_frames(n)
+    cases = {
+        "fog": A.RandomFog(fog_coef_range=(0.3, 0.3), alpha_coef=0.08, p=1.0),
+        "rain": A.RandomRain(p=1.0),
+        "snow": A.RandomSnow(p=1.0),
+        "glare": A.RandomSunFlare(p=1.0),
+        "darkness": A.RandomBrightnessContrast(brightness_limit=(-0.5, -0.5), p=1.0),
+        "motion_blur": A.MotionBlur(blur_limit=(7, 7), p=1.0),
+        "noise": A.GaussNoise(std_range=(0.18, 0.18), p=1.0),
+        "occlusion": A.CoarseDropout(p=1.0),
+    }
+    rows = []
+    for name, tr in cases.items():
+        tr.set_random_seed(0) if hasattr(tr, "set_random_seed") else None
+
+        def run():
+            for f in frames:
+                tr(image=f)
+
+        try:
+            dt = _median_time(run, 1)
+            rows.append((f"albumentations {A.__version__}", name, n / dt))
+        except Exception as e:  # noqa: BLE001
+            rows.append((f"albumentations {A.__version__}", name, f"failed: {type(e).__name__}"))
+    return rows
+
+
+def bench_imagecorruptions(n: int) -> list[tuple]:
+    try:
+        from imagecorruptions import corrupt
+    except Exception as e:  # noqa: BLE001
+        return [("imagecorruptions", f"not importable ({type(e).__name__})", None)]
+    frames = _peer_frames(n)
+    rows = []
+    for name in ("fog", "snow", "motion_blur", "gaussian_noise"):
+
+        def run():
+            for f in frames:
+                corrupt(f, corruption_name=name, severity=3)
+
+        try:
+            rows.append(("imagecorruptions", name, n / _median_time(run, 1)))
+        except Exception as e:  # noqa: BLE001
+            rows.append(("imagecorruptions", name, f"failed: {type(e).__name__}"))
+    return rows
+
+
+# ------------------------------------------------------------------------ main
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--reps", type=int, default=5, help="timed calls per batch-256 case")
+    ap.add_argument("--peers", default=os.environ.get("TORCSRL_PEERS"), help="folder with peer packages")
+    ap.add_argument("--no-peers", action="store_true")
+    ap.add_argument("--wall", action="store_true", help="wall-clock instead of CPU time")
+    a = ap.parse_args(argv)
+    if a.wall:
+        global CLOCK
+        CLOCK = time.perf_counter
+
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    t_start = time.perf_counter()
+    clock = "wall clock" if a.wall else "process CPU time"
+    print(f"torch {torch.__version__}, threads={torch.get_num_threads()}, frames {H}x{W}, severity 3, {clock}")
+
+    print(f"\n## camera: images/s (goal >= {GOAL_IMG_S:,} at step B=256)")
+    print(f"| {'degradation':22s} | {'step B=1':>9s} | {'step B=256':>10s} | {'fresh B=256':>11s} | goal |")
+    print(f"|{'-' * 24}|{'-' * 11}|{'-' * 12}|{'-' * 13}|------|")
+    for name, a1, a256, f256 in bench_camera(a.reps):
+        ok = "ok" if a256 >= GOAL_IMG_S else "MISS"
+        print(f"| {name:22s} | {a1:9,.0f} | {a256:10,.0f} | {f256:11,.0f} | {ok:4s} |")
+
+    print(f"\n## rangefinder and state: per env-step (goal <= {GOAL_RF_US:.0f} us at B=256 for the rangefinder stack)")
+    stacks, singles = [], []
+    for sensor, key, fn in (
+        ("rangefinder", "rangefinder", track_scans),
+        ("state", "state", lambda B: torch.linspace(-1, 1, 12).repeat(B, 1) * 10),
+    ):
+        s, r = bench_vector(sensor, key, fn, a.reps)
+        stacks += s
+        singles += r
+    print(f"| {'stack':22s} | {'B':>4s} | {'us per call':>11s} | {'us per env-step':>15s} |")
+    print(f"|{'-' * 24}|{'-' * 6}|{'-' * 13}|{'-' * 17}|")
+    for name, B, us, per in stacks:
+        print(f"| {name:22s} | {B:4d} | {us:11,.0f} | {per:15,.2f} |")
+    print(f"\n| {'degradation (alone)':22s} | {'us/call B=256':>13s} | {'us/call B=1':>11s} |")
+    print(f"|{'-' * 24}|{'-' * 15}|{'-' * 13}|")
+    for name, u256, u1 in singles:
+        print(f"| {name:22s} | {u256:13,.0f} | {u1:11,.0f} |")
+
+    if not a.no_peers:
+        for d in [a.peers, "/tmp/peers_albu", "/tmp/peers"]:
+            if d and Path(d).is_dir() and d not in sys.path:
+                sys.path.append(d)  # appended: the system's torch / numpy keep priority
+        print("\n## peers: images/s, one frame at a time, 84x84 (their own default parameters)")
+        print(f"| {'library':22s} | {'effect':14s} | {'images/s':>10s} |")
+        print(f"|{'-' * 24}|{'-' * 16}|{'-' * 12}|")
+        for lib, name, v in bench_albumentations(64) + bench_imagecorruptions(16):
+            val = f"{v:10,.0f}" if isinstance(v, float) else ("" if v is None else str(v))
+            print(f"| {lib:22s} | {name:14s} | {val:>10s} |")
+
+    print(f"\n(total {time.perf_counter() - t_start:.0f} s wall; one thread; a shared machine adds noise)")
+
+
+if __name__ == "__main__":
+    main()
