@@ -3,16 +3,22 @@
 Same settings for all: 256x256 actor and critic, batch 256, one gradient step per env step
 (TD3: actor every 2), one env, after a warm-up of random steps. Steps/s are env steps per
 wall-clock second of the whole loop (collect + store + sample + update), measured after the
-warm-up; 1 and 2 torch threads. SB3 is used only when importable (``pip install --target
-/tmp/peers stable-baselines3`` is picked up from /tmp/peers).
+warm-up, for each torch thread count asked for.
 
-    python benchmarks/train_throughput.py [--steps 1500] [--warmup 500] [--threads 1 2]
+The box is shared, so absolute figures drift with the load. What counts is the RATIO to SB3
+measured side by side: each round runs every contender once (SB3 first on even rounds, last
+on odd ones), a round's ratios compare runs seconds apart, and the table gives the median
+over rounds. SB3 is used when importable (``pip install stable-baselines3``, the ``[bench]``
+extra; a ``--target /tmp/peers`` install is picked up too).
+
+    python benchmarks/train_throughput.py [--steps 1500] [--warmup 500] [--threads 1 2] [--rounds 3]
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import statistics
 import sys
 import tempfile
 import time
@@ -29,37 +35,48 @@ from hydra import compose, initialize_config_dir  # noqa: E402
 from torcsrl.train import train  # noqa: E402
 from torcsrl.utils.logging import read_csv_metric  # noqa: E402
 
+TARGETS = {"td3": 1.25, "d4pg": 1.0}
 
-def ours(algo: str, threads: int, steps: int, warmup: int) -> float:
+
+def ours(algo: str, threads: int, steps: int, warmup: int, extra: list[str]) -> tuple[float, float]:
+    """(steps per wall second, steps per CPU second) of ``torcsrl.train.train`` after the warm-up (from its log)."""
     run = tempfile.mkdtemp(prefix=f"tp_{algo}_")
+    every = max(50, steps // 5)
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         cfg = compose("train", overrides=[
             f"algo={algo}", "env.name=gym", "+env.id=Pendulum-v1", "env.sensors=[observation]", f"run_dir={run}",
             f"threads={threads}", f"total_frames={warmup + steps}", f"collector.init_random_frames={warmup}",
             f"learner.warmup_frames={warmup}", "collector.frames_per_batch=1", "algo.batch_size=256",
             "algo.actor_hidden=[256,256]", "algo.critic_hidden=[256,256]", "eval.every_episodes=1000000",
-            "checkpoint.every_frames=0", "checkpoint.buffer=false", f"logger.every_frames={steps // 5}", "progress=false",
+            "checkpoint.every_frames=0", "checkpoint.buffer=false", f"logger.every_frames={every}", "progress=false",
             "buffer.size=100000",
             *(["algo.exploration.sigma=0.2", "algo.exploration.theta=0.15", "algo.exploration.mu=0.0"] if algo == "ddpg" else []),
+            *extra,
         ])
     train(cfg)
-    rows = [v for s, v in read_csv_metric(Path(run), "time/steps_per_s") if s > warmup + steps // 5]
-    return sum(rows) / len(rows)
+    wall = [(s, v) for s, v in read_csv_metric(Path(run), "time/elapsed_s") if s >= warmup + every]
+    cpu = [(s, v) for s, v in read_csv_metric(Path(run), "time/cpu_s") if s >= warmup + every]
+    return (wall[-1][0] - wall[0][0]) / (wall[-1][1] - wall[0][1]), (cpu[-1][0] - cpu[0][0]) / (cpu[-1][1] - cpu[0][1])
 
 
-def sb3(threads: int, steps: int, warmup: int) -> float | None:
-    try:
+class SB3:
+    """One SB3 TD3 model per thread count, learning ``steps`` more steps per call."""
+
+    def __init__(self, threads: int, warmup: int):
         import gymnasium as gym
         from stable_baselines3 import TD3
-    except ImportError:
-        return None
-    torch.set_num_threads(threads)
-    m = TD3("MlpPolicy", gym.make("Pendulum-v1"), learning_starts=warmup, batch_size=256, buffer_size=100000,
-            policy_kwargs=dict(net_arch=[256, 256]), seed=0, device="cpu")
-    m.learn(warmup + 50)
-    t = time.perf_counter()
-    m.learn(steps, reset_num_timesteps=False)
-    return steps / (time.perf_counter() - t)
+
+        torch.set_num_threads(threads)
+        self.m = TD3("MlpPolicy", gym.make("Pendulum-v1"), learning_starts=warmup, batch_size=256, buffer_size=100000,
+                     policy_kwargs=dict(net_arch=[256, 256]), seed=0, device="cpu")
+        self.m.learn(warmup + 50)
+        self.threads = threads
+
+    def __call__(self, steps: int) -> tuple[float, float]:
+        torch.set_num_threads(self.threads)
+        t, c = time.perf_counter(), time.process_time()
+        self.m.learn(steps, reset_num_timesteps=False)
+        return steps / (time.perf_counter() - t), steps / (time.process_time() - c)
 
 
 def main() -> None:
@@ -67,20 +84,55 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=1500, help="measured env steps per run")
     ap.add_argument("--warmup", type=int, default=500, help="random steps before updates start")
     ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--rounds", type=int, default=3, help="rounds of side-by-side runs (median reported)")
+    ap.add_argument("--algos", nargs="+", default=["td3", "ddpg", "d4pg"])
+    ap.add_argument("overrides", nargs="*", help="extra Hydra overrides for our runs (after --)")
     a = ap.parse_args()
-    rows = []
+    try:
+        import stable_baselines3  # noqa: F401
+
+        have_sb3 = True
+    except ImportError:
+        have_sb3 = False
+        print("stable-baselines3 is not installed (pip install stable-baselines3): ratios are left out", file=sys.stderr)
+    table = []
     for th in a.threads:
-        peer = sb3(th, a.steps, a.warmup)
-        res = {algo: ours(algo, th, a.steps, a.warmup) for algo in ("td3", "ddpg", "d4pg")}
-        rows.append((th, peer, res))
-    print(f"\nPendulum-v1, 256x256, batch 256, UTD 1, {a.steps} steps after {a.warmup} warm-up; load avg {os.getloadavg()[0]:.2f}")
-    print(f"{'threads':>7} | {'SB3 TD3':>8} | {'TD3':>7} {'ratio':>6} | {'DDPG':>7} {'ratio':>6} | {'D4PG':>7} {'ratio':>6}")
-    for th, peer, res in rows:
-        def cell(v):
-            return f"{v:7.1f} {v / peer:6.2f}" if peer else f"{v:7.1f} {'-':>6}"
-        p = f"{peer:8.1f}" if peer else f"{'n/a':>8}"
-        print(f"{th:>7} | {p} | {cell(res['td3'])} | {cell(res['ddpg'])} | {cell(res['d4pg'])}")
-    print("targets: TD3 >= 1.25 x SB3 TD3, D4PG >= 1.0 x SB3 TD3 (steps/s)")
+        load0 = os.getloadavg()[0]
+        peer = SB3(th, a.warmup) if have_sb3 else None
+        runs: dict[str, list[float]] = {k: [] for k in ["sb3", *a.algos]}
+        ratios: dict[str, list[float]] = {k: [] for k in a.algos}
+        cpu_ratios: dict[str, list[float]] = {k: [] for k in a.algos}
+        for r in range(a.rounds):
+            order = ["sb3", *a.algos] if r % 2 == 0 else [*a.algos, "sb3"]
+            got = {}
+            for name in order:
+                if name == "sb3":
+                    if peer is not None:
+                        got[name] = peer(a.steps)
+                else:
+                    got[name] = ours(name, th, a.steps, a.warmup, a.overrides)
+            for k, v in got.items():
+                runs[k].append(v[0])
+            if "sb3" in got:
+                for k in a.algos:
+                    ratios[k].append(got[k][0] / got["sb3"][0])
+                    cpu_ratios[k].append(got[k][1] / got["sb3"][1])
+            print(f"[threads {th} round {r}] " + ", ".join(f"{k} {v[0]:.1f} steps/s ({v[1]:.1f} per CPU-s)" for k, v in got.items())
+                  + f"; load {os.getloadavg()[0]:.2f}", file=sys.stderr)
+        table.append((th, load0, os.getloadavg()[0], runs, ratios, cpu_ratios))
+
+    print(f"\nPendulum-v1, 256x256, batch 256, UTD 1, {a.steps} steps after {a.warmup} warm-up; steps/s and ratio to SB3 TD3, "
+          f"median of {a.rounds} side-by-side rounds (cpu: ratio of steps per CPU-second, meaningful at 1 thread)")
+    head = f"{'threads':>7} | {'load':>9} | {'SB3 TD3':>8} | " + " | ".join(f"{k.upper():>7} {'ratio':>6} {'cpu':>5}" for k in a.algos)
+    print(head)
+    for th, l0, l1, runs, ratios, cpu_ratios in table:
+        sb = f"{statistics.median(runs['sb3']):8.1f}" if runs["sb3"] else f"{'n/a':>8}"
+        cells = []
+        for k in a.algos:
+            rt = f"{statistics.median(ratios[k]):6.2f} {statistics.median(cpu_ratios[k]):5.2f}" if ratios[k] else f"{'-':>6} {'-':>5}"
+            cells.append(f"{statistics.median(runs[k]):7.1f} {rt}")
+        print(f"{th:>7} | {l0:4.1f}-{l1:<4.1f} | {sb} | " + " | ".join(cells))
+    print("targets: " + ", ".join(f"{k.upper()} >= {v} x SB3 TD3" for k, v in TARGETS.items()) + " (steps/s)")
 
 
 if __name__ == "__main__":

@@ -14,7 +14,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from torcsrl.train import build_base_env, make_buffer, train, transition_bytes
+from torcsrl.train import build_base_env, make_buffer, train
 from torcsrl.utils.checkpoint import CheckpointError, load_checkpoint
 from torcsrl.utils.logging import read_csv_metric
 
@@ -61,8 +61,10 @@ def test_smoke_vector_observations(tmp_path, algo, extra):
     r = train(cfg_for(f"algo={algo}", f"run_dir={tmp_path}", "total_frames=400", *extra))
     assert r["frames"] >= 400 and r["updates"] > 0 and r["episodes"] > 0
     assert math.isfinite(r["loss/qvalue"]) and math.isfinite(r["eval/reward"])
-    # d4pg adds MultiStepTransform keys: steps_to_next_obs (8), gamma (4), nonterminal (1), original_reward (4), our nstep flag (1)
-    assert r["bytes_per_transition"] == (215 if algo != "d4pg" else 215 + 8 + 4 + 1 + 4 + 1)
+    # one row: rangefinder 19 + state 6 floats, action 2 floats, reward, 3 flags, the int32 finals pointer (n-step returns
+    # are formed when sampling, so d4pg stores the same rows); the next observation is the following row's
+    assert r["bytes_per_transition"] == 4 * (19 + 6) + 4 * 2 + 4 + 3 + 4 == 119
+    assert r["bytes_per_final"] == 4 * (19 + 6)  # one per finished episode
     rows = read_csv_metric(tmp_path, "loss/qvalue")
     assert rows and all(math.isfinite(v) for _, v in rows)
     assert read_csv_metric(tmp_path, "time/steps_per_s")
@@ -74,8 +76,8 @@ def test_smoke_pixels_with_drq_shift(tmp_path):
     r = train(cfg_for("algo=td3", f"run_dir={tmp_path}", "total_frames=200", "env.sensors=[rangefinder,state,pixels]",
                       "algo.encoder.augment_shift=2", "checkpoint.buffer=false"))
     assert r["updates"] > 0 and math.isfinite(r["loss/qvalue"])
-    # uint8 frames, stored twice (obs and next obs): 2 * 3*32*32 + the vector transition
-    assert r["bytes_per_transition"] == 2 * 3 * 32 * 32 + 215
+    # uint8 frames stored ONCE (the next frame is the following row's, or the finals table's at an episode end)
+    assert r["bytes_per_transition"] == 3 * 32 * 32 + 119
 
 
 def test_multisync_collector_two_workers_on_their_own_tracks(tmp_path):
@@ -143,20 +145,100 @@ def test_bad_checkpoints_give_one_clear_line(tmp_path):
     one_line(e, "does not exist")
 
 
+def _toy_rollout(steps: int, cars: int = 3, max_steps: int = 7):
+    """[cars, steps] transitions of the toy env with truncations (max_steps) and crashes (random starts)."""
+    torch.manual_seed(0)
+    env = build_base_env("toy", {"seed": 0, "num_cars": cars, "max_steps": max_steps, "start": "random", "dt": 0.5})
+    base = torch.tensor([[0.0, -0.2], [0.9, 1.0], [-0.9, 1.0]])[torch.arange(cars) % 3]  # car 0 cruises, the others crash
+
+    def policy(td):
+        return td.set("action", (base + 0.1 * torch.randn(cars, 2)).clamp(-1, 1))
+
+    ro = env.rollout(steps, policy, break_when_any_done=False)
+    assert ro["next", "truncated"].any() and ro["next", "terminated"].any()
+    return ro
+
+
+KEYS = ["rangefinder", "state"]
+
+
+def _flat(ro):
+    """Time-major flat transitions (the buffer's order)."""
+    return ro.transpose(0, 1).reshape(-1)
+
+
+def _same(got, want, keys=(*KEYS, "action", ("next", "rangefinder"), ("next", "state"), ("next", "reward"), ("next", "done"),
+                            ("next", "terminated"), ("next", "truncated"))):
+    for k in keys:
+        torch.testing.assert_close(got[k], want[k], msg=str(k))
+
+
+def test_replay_stores_each_observation_once_and_rebuilds_next_observations():
+    from torcsrl.utils.replay import ReplayBuffer
+
+    ro = _toy_rollout(20)
+    rb = ReplayBuffer(1000, 8, KEYS, streams=3)
+    rb.extend(ro[:, :5])  # a batch of 5 steps, then one step at a time
+    for t in range(5, 20):
+        rb.extend(ro[:, t : t + 1])
+        _same(rb[:], _flat(ro[:, : t + 1]))  # the newest transitions are sampleable at once
+    assert len(rb) == 60 and "next" not in rb._rows.keys()
+    small = ReplayBuffer(12, 8, KEYS, streams=3)  # wraps around: keeps the newest 4 steps
+    small.extend(ro)
+    _same(small[:], _flat(ro[:, -4:]))
+    batch = small.sample()
+    _same(batch, small.transitions(batch["index"]))
+    assert batch.shape == (8,) and set(batch["index"].tolist()) <= set(((torch.arange(12) + small.written - 12) % small.rows).tolist())
+
+
+def test_replay_n_step_returns_equal_torchrl_multistep():
+    from torchrl.envs import MultiStepTransform
+
+    from torcsrl.utils.replay import ReplayBuffer
+
+    n, gamma = 3, 0.9
+    ro = _toy_rollout(20)
+    ref_in = ro.clone()
+    ref_in["next", "end_terminated"] = ref_in["next", "terminated"].clone()  # gathered from the window's end
+    ref = MultiStepTransform(n, gamma).inv(ref_in)  # transitions t < 20 - n
+    rb = ReplayBuffer(1000, 8, KEYS, streams=3, n_steps=n, gamma=gamma)
+    for t in range(20):
+        rb.extend(ro[:, t])
+    got = rb[:]
+    assert len(rb) == 3 * (20 - n + 1)  # sampleable once the window is complete
+    want = _flat(ref)
+    m = want.numel()
+    _same(got[:m], want, keys=(*KEYS, "action", ("next", "rangefinder"), ("next", "state")))
+    torch.testing.assert_close(got[:m]["steps_to_next_obs"].reshape(-1), want["steps_to_next_obs"].reshape(-1))
+    torch.testing.assert_close(got[:m]["next", "reward"], want["next", "reward"])
+    torch.testing.assert_close(got[:m]["next", "terminated"], want["next", "end_terminated"])
+
+
 def test_buffer_save_load_shares_between_experiments(tmp_path):
-    cfg = cfg_for("algo=td3", f"run_dir={tmp_path}")
-    env = build_base_env("toy", {"seed": 0})
-    ro = env.rollout(50, break_when_any_done=False)
-    td = ro.select("rangefinder", "state", "action", ("next", "rangefinder"), ("next", "state"), ("next", "reward"), ("next", "done"),
-                   ("next", "terminated"), ("next", "truncated"))
+    ro = _toy_rollout(20)
+    cfg = cfg_for("algo=td3", f"run_dir={tmp_path}", "env.num_cars=3", "buffer.prioritized=true")
     rb = make_buffer(cfg, tmp_path)
-    rb.extend(td)
-    assert transition_bytes(td) == 215
+    rb.extend(ro)
     rb.dumps(str(tmp_path / "shared"))
-    rb2 = make_buffer(cfg, tmp_path)
+    rb2 = make_buffer(cfg, tmp_path)  # the same layout: row for row (the exact-resume path)
     rb2.loads(str(tmp_path / "shared"))
-    assert len(rb2) == 50
-    torch.testing.assert_close(rb2[:]["next", "reward"], td["next", "reward"])
+    assert (rb2.written, rb2.finals_written, len(rb2)) == (rb.written, rb.finals_written, 60)
+    _same(rb2[:], _flat(ro))
+    torch.testing.assert_close(rb2.priorities.prio, rb.priorities.prio)
+    small = make_buffer(cfg_for("algo=td3", "env.num_cars=3", "buffer.size=30"), tmp_path)  # another capacity: the newest rows
+    small.loads(str(tmp_path / "shared"))
+    _same(small[:], _flat(ro[:, -10:]))
+    d4pg = make_buffer(cfg_for("algo=d4pg", "env.num_cars=3"), tmp_path)  # another algorithm: n-step returns from the same rows
+    d4pg.loads(str(tmp_path / "shared"))
+    direct = make_buffer(cfg_for("algo=d4pg", "env.num_cars=3"), tmp_path)
+    direct.extend(ro)
+    _same(d4pg[:], direct[:], keys=(*KEYS, ("next", "state"), ("next", "reward"), "steps_to_next_obs"))
+    with pytest.raises(ValueError, match="has 3 streams"):
+        make_buffer(cfg_for("algo=td3"), tmp_path).loads(str(tmp_path / "shared"))
+    disk = make_buffer(cfg_for("algo=td3", "env.num_cars=3", "buffer.storage=disk", f"buffer.path={tmp_path / 'mm'}"), tmp_path)
+    disk.extend(ro)
+    assert any((tmp_path / "mm").rglob("*.memmap"))
+    _same(disk[:], _flat(ro))
 
 
 def test_unknown_env_name_is_one_clear_line():

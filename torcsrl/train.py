@@ -24,14 +24,14 @@ import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import torch
 from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDict, TensorDictBase
-from torchrl.collectors import Collector, MultiSyncCollector
-from torchrl.data import LazyMemmapStorage, LazyTensorStorage, TensorDictReplayBuffer
-from torchrl.envs import Compose, EnvBase, InitTracker, MultiStepTransform, RewardSum, TransformedEnv
+from torchrl.collectors import MultiSyncCollector
+from torchrl.envs import Compose, EnvBase, InitTracker, RewardSum, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torcsrl import agents
@@ -44,13 +44,11 @@ from torcsrl.utils.checkpoint import (
     save_checkpoint,
     save_dir_atomically,
 )
-from torcsrl.utils.replay import TorchPrioritizedSampler
+from torcsrl.utils.collector import StepCollector
+from torcsrl.utils.replay import ReplayBuffer
 from torcsrl.utils.logging import Progress, log_metrics, make_loggers, truncate_csv_after
 from torcsrl.utils.seeding import rng_state, seed_everything, set_rng_state
 from torcsrl.utils.threads import configure_threads
-
-NSTEP_TERMINATED = "nstep_terminated"  # ("next", ...) terminated flag at the END of the n-step window
-
 
 # ---------------------------------------------------------------------------------------
 # environments
@@ -60,6 +58,7 @@ def env_kwargs(env_cfg: Any, **override: Any) -> dict:
     d = OmegaConf.to_container(env_cfg, resolve=True) if isinstance(env_cfg, DictConfig) else dict(env_cfg)
     d.update(override)
     d.pop("name", None)
+    d.pop("normalize", None)  # consumed by observation_transforms
     if d.get("sensors") is not None:
         d["sensors"] = tuple(d["sensors"])
     return {k: v for k, v in d.items() if v is not None}
@@ -87,66 +86,105 @@ def build_base_env(name: str, kwargs: dict) -> EnvBase:
     raise ValueError(f"unknown env.name {name!r}; known: race, toy, gym")
 
 
-def make_train_env(cfg: DictConfig, worker: int = -1) -> TransformedEnv:
-    """The training env of worker ``worker`` (-1: the in-process collector): InitTracker + RewardSum on top."""
+def make_train_env(cfg: DictConfig, worker: int = -1) -> EnvBase:
+    """The training env of worker ``worker`` (-1: the in-process collector): the observation transforms,
+    and for the worker processes of TorchRL's MultiSyncCollector InitTracker + RewardSum (the in-process
+    :class:`StepCollector` keeps those two entries itself, cheaper). Without any transform, the base env
+    itself (an empty ``TransformedEnv`` still clones every step's input: ~0.1 ms)."""
     override: dict = {"seed": int(cfg.seed) + 1000 * (worker + 1), "device": "cpu"}
     tracks = cfg.collector.worker_tracks
     if tracks:
         override["track"] = tracks[max(worker, 0) % len(tracks)]
     base = build_base_env(cfg.env.name, env_kwargs(cfg.env, **override))
-    return TransformedEnv(base, Compose(InitTracker(), RewardSum()))
+    transforms = [*observation_transforms(cfg, base), *([InitTracker(), RewardSum()] if worker >= 0 else [])]
+    return TransformedEnv(base, Compose(*transforms)) if transforms else base
+
+
+def observation_transforms(cfg: DictConfig, base: EnvBase, seed: int | None = None) -> list:
+    """What the policy's observations go through: degradations (in sensor units), then scaling.
+
+    ``cfg.degradation.stack`` (named entries, see conf/degradation/) becomes one seeded Compose
+    (:func:`torcsrl.transforms.make_stack`): its generators are seeded from ``seed``, by default the
+    base env's own seed (train: ``seed + 1000 (worker + 1)``, validation: ``eval.seed``), so every
+    worker draws its own weather and a run with the same config and seed sees the same draws.
+    The race env's sensors are in SI / TORCS units; ``env.normalize`` divides them by
+    :func:`torcsrl.envs.sensors.obs_scale` (about [-1, 1]) after any degradation.
+    """
+    out: list = []
+    degradation = cfg.get("degradation")
+    stack = degradation.get("stack") if isinstance(degradation, DictConfig) else None
+    if stack and any(v is not None for v in stack.values()):
+        from torcsrl.transforms import derive_seed, make_stack
+
+        env_seed = _env_seed(base, int(cfg.seed)) if seed is None else int(seed)
+        out.append(make_stack(OmegaConf.to_container(stack, resolve=True), seed=derive_seed(env_seed, "degradation")))
+    if cfg.env.name == "race" and cfg.env.get("normalize", True):
+        from torcsrl.envs.sensors import normalize_transform
+
+        keys = [k for k in ("rangefinder", "state") if k in base.observation_spec.keys()]
+        if keys:
+            n_beams = base.observation_spec["rangefinder"].shape[-1] if "rangefinder" in keys else 19
+            out.append(normalize_transform(keys, n_beams))
+    return out
+
+
+def _env_seed(base: EnvBase, default: int) -> int:
+    """The seed ``base`` was built with: the race env keeps its kwargs, the toy env its numpy SeedSequence."""
+    seed = getattr(base, "_kwargs", {}).get("seed") if isinstance(getattr(base, "_kwargs", None), dict) else None
+    if seed is None:
+        seq = getattr(getattr(getattr(base, "rng", None), "bit_generator", None), "seed_seq", None)
+        seed = getattr(seq, "entropy", None) if isinstance(getattr(seq, "entropy", None), int) else None
+    return int(default if seed is None else seed)
 
 
 def make_eval_env(cfg: DictConfig) -> EnvBase:
     """One car, the validation overrides, its own seed; no transforms (rewards are summed here)."""
     override = dict(OmegaConf.to_container(cfg.eval.env, resolve=True) or {})
     override.update(num_cars=1, seed=int(cfg.eval.seed), device="cpu", lap_limit=cfg.eval.lap_limit, max_steps=int(cfg.eval.max_steps))
-    return build_base_env(cfg.env.name, env_kwargs(cfg.env, **override))
+    base = build_base_env(cfg.env.name, env_kwargs(cfg.env, **override))
+    ts = observation_transforms(cfg, base)
+    return TransformedEnv(base, Compose(*ts)) if ts else base
 
 
 # ---------------------------------------------------------------------------------------
 # buffer and collector
 # ---------------------------------------------------------------------------------------
-def stored_keys(obs_keys: list[str]) -> list:
-    """What one transition keeps: observations, action, next observations, reward and end flags."""
-    return [*obs_keys, "action", *[("next", k) for k in obs_keys], ("next", "reward"), ("next", "done"), ("next", "terminated"), ("next", "truncated")]
+def streams(cfg: DictConfig) -> int:
+    """Parallel trajectories per env step: cars per env x env processes."""
+    return max(1, int(cfg.env.get("num_cars", 1) or 1)) * max(1, int(cfg.collector.num_workers))
 
 
-def transition_bytes(td: TensorDictBase) -> int:
-    """Bytes one stored transition takes (``td`` has one leading batch dim)."""
-    return int(sum(v.element_size() * v[0].numel() for v in td.values(True, True)))
-
-
-def make_buffer(cfg: DictConfig, run_dir: Path):
-    """TorchRL replay buffer: RAM (LazyTensorStorage) or disk (LazyMemmapStorage), optionally prioritized."""
+def make_buffer(cfg: DictConfig, run_dir: Path) -> ReplayBuffer:
+    """Replay ring (``torcsrl/utils/replay.py``): every observation stored once, n-step returns formed
+    when sampling, RAM or memory-mapped disk storage, optionally prioritized."""
     b = cfg.buffer
-    if b.storage == "ram":
-        storage = LazyTensorStorage(int(b.size))
-    elif b.storage == "disk":
-        storage = LazyMemmapStorage(int(b.size), scratch_dir=str(b.path or Path(run_dir) / "buffer"))
-    else:
-        raise ValueError(f"unknown buffer.storage {b.storage!r}; known: ram, disk")
-    kw = dict(storage=storage, batch_size=int(cfg.algo.batch_size), priority_key="td_error")
-    if b.prioritized:  # TorchRL's PrioritizedSampler needs its C++ extension; see torcsrl/utils/replay.py
-        kw["sampler"] = TorchPrioritizedSampler(int(b.size), alpha=float(b.alpha), beta=float(b.beta))
-    return TensorDictReplayBuffer(**kw)
+    return ReplayBuffer(int(b.size), int(cfg.algo.batch_size), list(cfg.obs_keys or cfg.env.sensors), streams=streams(cfg),
+                        n_steps=int(cfg.algo.n_steps), gamma=float(cfg.algo.gamma), storage=str(b.storage),
+                        path=b.path or Path(run_dir) / "buffer", prioritized=bool(b.prioritized), alpha=float(b.alpha), beta=float(b.beta))
 
 
-def make_collector(cfg: DictConfig, env: EnvBase, policy) -> Collector | MultiSyncCollector:
-    """In-process Collector (num_workers = 0) or MultiSyncCollector over ``num_workers`` env processes."""
+def make_collector(cfg: DictConfig, env: EnvBase, policy) -> StepCollector | MultiSyncCollector:
+    """In-process :class:`StepCollector` (num_workers = 0) or TorchRL's MultiSyncCollector over ``num_workers`` env processes."""
     c = cfg.collector
-    kw = dict(frames_per_batch=int(c.frames_per_batch), total_frames=-1, init_random_frames=int(c.init_random_frames),
-              exploration_type=ExplorationType.RANDOM)
     if int(c.num_workers) == 0:
-        return Collector(env, policy, track_traj_ids=False, **kw)
+        return StepCollector(env, policy, int(c.frames_per_batch), int(c.init_random_frames))
     fns = [functools.partial(make_train_env, cfg, i) for i in range(int(c.num_workers))]
-    kw["frames_per_batch"] = kw["frames_per_batch"] * int(c.num_workers)
-    return MultiSyncCollector(fns, policy, **kw)
+    return MultiSyncCollector(fns, policy, frames_per_batch=int(c.frames_per_batch) * int(c.num_workers), total_frames=-1,
+                              init_random_frames=int(c.init_random_frames), exploration_type=ExplorationType.RANDOM)
 
 
 # ---------------------------------------------------------------------------------------
 # validation
 # ---------------------------------------------------------------------------------------
+def _lap_keys(td: TensorDictBase) -> tuple:
+    """(completed-laps key, last-lap-time key) of an env's output: the race env's ``info`` entries
+    or the toy env's ``laps`` / ``lap_time``; ``None`` where absent."""
+    keys = td.keys(include_nested=True)
+    if ("info", "lap") in keys:
+        return ("info", "lap"), ("info", "lastLapTime")
+    return ("laps" if "laps" in keys else None), ("lap_time" if "lap_time" in keys else None)
+
+
 @torch.no_grad()
 def validate(env: EnvBase, policy, episodes: int, max_steps: int) -> dict[str, float]:
     """Summers's protocol: deterministic policy, no noise, nothing stored, no updates."""
@@ -155,11 +193,12 @@ def validate(env: EnvBase, policy, episodes: int, max_steps: int) -> dict[str, f
         for _ in range(episodes):
             ro = env.rollout(max_steps, policy, break_when_any_done=True)
             rewards.append(float(ro["next", "reward"].sum()))
-            nxt_laps = ro["next"].get("laps", torch.zeros(ro.shape + (1,), dtype=torch.long)).reshape(-1)
+            lap_key, time_key = _lap_keys(ro["next"])
+            nxt_laps = ro["next"].get(lap_key, torch.zeros(ro.shape + (1,), dtype=torch.long)).reshape(-1)
             laps.append(int(nxt_laps[-1]))
             prev = torch.cat([torch.zeros(1, dtype=nxt_laps.dtype), nxt_laps[:-1]])
-            if "lap_time" in ro["next"].keys():
-                lap_times += ro["next", "lap_time"].reshape(-1)[nxt_laps > prev].tolist()
+            if time_key is not None:
+                lap_times += ro["next", time_key].reshape(-1)[nxt_laps > prev].tolist()
     return {
         "eval/reward": sum(rewards) / len(rewards),
         "eval/laps": sum(laps) / len(laps),
@@ -205,6 +244,14 @@ def expected_meta(cfg: DictConfig, env: EnvBase, obs_keys: list[str]) -> dict:
 # ---------------------------------------------------------------------------------------
 # the loop
 # ---------------------------------------------------------------------------------------
+def plain(node: DictConfig) -> SimpleNamespace:
+    """A config node as nested ``SimpleNamespace`` of plain values (attribute access without OmegaConf's cost)."""
+    def conv(v):
+        return SimpleNamespace(**{k: conv(x) for k, x in v.items()}) if isinstance(v, dict) else v
+
+    return conv(OmegaConf.to_container(node, resolve=True))
+
+
 def _run_dir(cfg: DictConfig) -> Path:
     if cfg.run_dir:
         return Path(cfg.run_dir)
@@ -235,9 +282,6 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     policy = agent.make_exploration(cfg.algo, actor, env, obs_keys)
     optim = agent.make_optimizers(cfg.algo, loss)
     buffer = make_buffer(cfg, run_dir)
-    nstep = MultiStepTransform(int(cfg.algo.n_steps), float(cfg.algo.gamma)) if int(cfg.algo.n_steps) > 1 else None
-    if nstep is not None:
-        loss.set_keys(terminated=NSTEP_TERMINATED)
     collector = make_collector(cfg, env, policy)
     eval_env = make_eval_env(cfg)
     meta = expected_meta(cfg, env, obs_keys)
@@ -246,16 +290,19 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     if cfg.buffer.load:
         buffer.loads(str(cfg.buffer.load))
     if cfg.checkpoint.resume:
-        counters = _resume(cfg, ckpt_dir, meta, loss, optim, policy, collector, env, eval_env, buffer, nstep, run_dir)
+        counters = _resume(cfg, ckpt_dir, meta, loss, optim, policy, collector, env, eval_env, buffer, run_dir)
     loggers = make_loggers(cfg.logger.backends, run_dir, cfg.logger.exp_name, cfg.logger.wandb_project, cfg.logger.wandb_mode)
     progress = Progress(total, enabled=bool(cfg.progress))
     multi = int(cfg.collector.num_workers) > 0
     print(f"[torcsrl] training {cfg.algo.name} on env={cfg.env.name} for {total} steps; outputs in {run_dir}", file=sys.stderr)
 
+    # plain values for the hot loop (an OmegaConf lookup costs ~10 us)
+    hot = plain(cfg.algo)
+    warmup, batch_size, utd = int(cfg.learner.warmup_frames), int(cfg.algo.batch_size), float(cfg.learner.utd_ratio)
+    prioritized = bool(cfg.buffer.prioritized)
     last: dict[str, Any] = {}
     eval_metrics: dict[str, float] = {}
-    bytes_per_transition = 0
-    t_start = time.perf_counter()
+    t_start, cpu_start = time.perf_counter(), time.process_time()
     t_win, f_win, u_win = t_start, counters.frames, counters.updates
     ep_rewards, ep_laps = [], []
     try:
@@ -266,26 +313,20 @@ def train(cfg: DictConfig) -> dict[str, Any]:
             done = data["next", "done"].squeeze(-1)
             if done.any():
                 ep_rewards += data["next", "episode_reward"].squeeze(-1)[done].tolist()
-                if "laps" in data["next"].keys():
-                    ep_laps += data["next", "laps"].squeeze(-1)[done].tolist()
+                lap_key, _ = _lap_keys(data["next"])
+                if lap_key is not None:
+                    ep_laps += data["next", lap_key].squeeze(-1)[done].tolist()
                 counters.episodes += int(done.sum())
-            store = data.select(*stored_keys(obs_keys))
-            if nstep is not None:
-                store.set(("next", NSTEP_TERMINATED), store.get(("next", "terminated")).clone())
-                store = nstep.inv(store)  # None until n_steps frames have been seen
-            if store is not None and store.numel():
-                store = store.reshape(-1)
-                buffer.extend(store)
-                bytes_per_transition = bytes_per_transition or transition_bytes(store)
+            buffer.extend(data)
             counters.frames += data.numel()
 
             # update (configurable update-to-data ratio after the warm-up)
-            if counters.frames >= int(cfg.learner.warmup_frames) and len(buffer) >= int(cfg.algo.batch_size):
-                counters.owed_updates += float(cfg.learner.utd_ratio) * data.numel()
+            if counters.frames >= warmup and len(buffer) >= batch_size:
+                counters.owed_updates += utd * data.numel()
                 for _ in range(int(counters.owed_updates)):
                     batch = buffer.sample()
-                    last = agent.update(cfg.algo, loss, optim, target_updater, batch, counters.updates)
-                    if cfg.buffer.prioritized:
+                    last = agent.update(hot, loss, optim, target_updater, batch, counters.updates)
+                    if prioritized:
                         buffer.update_tensordict_priority(batch)
                     counters.updates += 1
                 counters.owed_updates -= int(counters.owed_updates)
@@ -299,7 +340,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
                 metrics = {k: float(v) for k, v in last.items()}
                 metrics.update({"train/frames": counters.frames, "train/episodes": counters.episodes, "train/buffer_size": len(buffer),
                                 "time/steps_per_s": sps, "time/updates_per_s": (counters.updates - u_win) / max(now - t_win, 1e-9),
-                                "time/elapsed_s": now - t_start})
+                                "time/elapsed_s": now - t_start, "time/cpu_s": time.process_time() - cpu_start})
                 if ep_rewards:
                     metrics["train/episode_reward"] = sum(ep_rewards) / len(ep_rewards)
                     if ep_laps:
@@ -322,7 +363,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
 
             # checkpoint
             if counters.frames >= counters.next_ckpt or counters.frames >= total:
-                _save(cfg, ckpt_dir, meta, counters, loss, optim, policy, collector, env, eval_env, buffer, nstep, threads)
+                _save(cfg, ckpt_dir, meta, counters, loss, optim, policy, collector, env, eval_env, buffer, threads)
                 every = int(cfg.checkpoint.every_frames) or total
                 while counters.next_ckpt <= counters.frames:
                     counters.next_ckpt += every
@@ -345,7 +386,8 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         "updates": counters.updates,
         "episodes": counters.episodes,
         "wall_s": wall,
-        "bytes_per_transition": bytes_per_transition,
+        "bytes_per_transition": buffer.bytes_per_transition,
+        "bytes_per_final": buffer.bytes_per_final,
         "run_dir": str(run_dir),
         "checkpoint": str(latest_checkpoint(ckpt_dir)) if latest_checkpoint(ckpt_dir) else None,
         **{k: float(v) for k, v in last.items()},
@@ -357,7 +399,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     return result
 
 
-def _save(cfg, ckpt_dir, meta, counters, loss, optim, policy, collector, env, eval_env, buffer, nstep, threads) -> Path:
+def _save(cfg, ckpt_dir, meta, counters, loss, optim, policy, collector, env, eval_env, buffer, threads) -> Path:
     path = checkpoint_path(ckpt_dir, counters.frames)
     buffer_dir = None
     if cfg.checkpoint.buffer:
@@ -370,13 +412,8 @@ def _save(cfg, ckpt_dir, meta, counters, loss, optim, policy, collector, env, ev
         "optim": {k: o.state_dict() for k, o in optim.items()},
         "policy": policy.state_dict(),
         "rng": rng_state(),
-        "collector": {} if multi else {
-            "state": collector.state_dict(),
-            "carrier": collector._carrier.to_dict(),
-            "env": _sim_state(env),
-        },
+        "collector": {} if multi else {"state": collector.state_dict(), "env": _sim_state(env)},
         "eval_env": _sim_state(eval_env),
-        "nstep": None if nstep is None or nstep._buffer is None else {"data": nstep._buffer.to_dict(), "batch_size": list(nstep._buffer.batch_size)},
         "buffer_dir": buffer_dir,
         "threads": threads,
         "config": OmegaConf.to_yaml(cfg),
@@ -386,7 +423,7 @@ def _save(cfg, ckpt_dir, meta, counters, loss, optim, policy, collector, env, ev
     return path
 
 
-def _resume(cfg, ckpt_dir, meta, loss, optim, policy, collector, env, eval_env, buffer, nstep, run_dir) -> Counters:
+def _resume(cfg, ckpt_dir, meta, loss, optim, policy, collector, env, eval_env, buffer, run_dir) -> Counters:
     path = latest_checkpoint(ckpt_dir) if cfg.checkpoint.resume == "latest" else Path(cfg.checkpoint.resume)
     if path is None:
         raise CheckpointError(f"checkpoint.resume=latest but {ckpt_dir} holds no checkpoint")
@@ -397,15 +434,12 @@ def _resume(cfg, ckpt_dir, meta, loss, optim, policy, collector, env, eval_env, 
     policy.load_state_dict(ck["policy"])
     if ck["collector"]:
         collector.load_state_dict(ck["collector"]["state"])
-        collector._carrier.update(TensorDict.from_dict(ck["collector"]["carrier"], batch_size=collector._carrier.batch_size))
         _set_sim_state(env, ck["collector"]["env"])
     else:
         print("[torcsrl] resuming a multi-process collector: worker episodes restart (exact resume needs num_workers=0)", file=sys.stderr)
     _set_sim_state(eval_env, ck["eval_env"])
     if ck["buffer_dir"]:
         buffer.loads(str(path.parent / ck["buffer_dir"]))
-    if nstep is not None and ck["nstep"] is not None:
-        nstep._buffer = TensorDict.from_dict(ck["nstep"]["data"], batch_size=ck["nstep"]["batch_size"])
     if ck["threads"] != torch.get_num_threads():
         print(f"[torcsrl] using the checkpoint's {ck['threads']} threads (float results depend on it)", file=sys.stderr)
         torch.set_num_threads(int(ck["threads"]))
@@ -420,9 +454,16 @@ def main_entry() -> None:
     import hydra
 
     @hydra.main(config_path="../conf", config_name="train", version_base="1.3")
-    def main(cfg: DictConfig) -> None:
+    def main(cfg: DictConfig) -> float | None:
+        from torcsrl.config import objective, save_run_info, validate, write_metrics
+
         try:
-            train(cfg)
+            validate(cfg)  # unknown keys, wrong types, unknown names, severities: before anything is built
+            run_dir = _run_dir(cfg)
+            save_run_info(cfg, run_dir)  # config.yaml (resolved) + git_rev.txt
+            result = train(cfg)
+            write_metrics(run_dir, result)  # metrics.json, read by python -m torcsrl.sweep
+            return objective(result, cfg.get("optimized_metric"))  # the value a sweeper (Optuna) optimises
         except (CheckpointError, ValueError, RuntimeError) as err:
             if isinstance(err, RuntimeError) and not isinstance(err, CheckpointError) and "cannot be imported" not in str(err):
                 raise

@@ -117,3 +117,45 @@ def test_param_noise_perturbs_and_adapts():
     assert float(pn.sigma) < s0  # distance above target -> sigma shrinks
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         torch.testing.assert_close(pn(td.clone())["action"], clean)
+
+
+def test_behaviour_policy_act_equals_its_tensordict_call():
+    from omegaconf import OmegaConf
+
+    from torcsrl import agents
+
+    env = make_toy_env()
+    keys = ["rangefinder", "state"]
+    cfg = OmegaConf.merge(OmegaConf.load("conf/algo/base.yaml"), {"name": "x", "actor_hidden": [16], "exploration": {"kind": "ou"},
+                                                                  "stochastic_brake": {"enabled": True, "prob": 0.5}})
+    ag = agents.get("td3")
+    policy = ag.make_exploration(cfg, ag.make_actor(cfg, env, keys), env, keys)
+    td = TensorDict({"rangefinder": torch.rand(4, 19) * 50, "state": torch.zeros(4, 6), "is_init": torch.zeros(4, 1, dtype=torch.bool)}, [4])
+    torch.manual_seed(0)
+    slow = policy(td.clone())
+    torch.manual_seed(0)
+    fast = policy.act(td.clone())
+    torch.testing.assert_close(fast["action"], slow["action"])
+    torch.testing.assert_close(fast["_ou_noise"], slow["_ou_noise"])
+
+
+def test_fused_adam_equals_torch_fused_adam_bit_for_bit():
+    from torcsrl.agents._build import FusedAdam
+
+    torch.manual_seed(0)
+    a = torch.nn.Sequential(torch.nn.Linear(4, 16), torch.nn.ReLU(), torch.nn.Linear(16, 2))
+    b = torch.nn.Sequential(torch.nn.Linear(4, 16), torch.nn.ReLU(), torch.nn.Linear(16, 2))
+    b.load_state_dict(a.state_dict())
+    oa = torch.optim.Adam(a.parameters(), lr=1e-3, weight_decay=0.01, fused=True)
+    ob = FusedAdam(b.parameters(), lr=1e-3, weight_decay=0.01)
+    for i in range(12):
+        x = torch.randn(8, 4)
+        for m, o in ((a, oa), (b, ob)):
+            o.zero_grad(set_to_none=True)
+            m(x).pow(2).mean().backward()
+            o.step()
+        if i == 5:  # a checkpoint round trip in the middle
+            ob.load_state_dict(ob.state_dict())
+    assert all(torch.equal(p, q) for p, q in zip(a.parameters(), b.parameters()))
+    sa, sb = oa.state_dict()["state"], ob.state_dict()["state"]
+    assert all(torch.equal(sa[k][n], sb[k][n]) for k in sa for n in sa[k])

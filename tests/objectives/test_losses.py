@@ -140,3 +140,29 @@ def test_c51_projection_hand_computed():
     want2 = torch.tensor([0.0, 0.0, 1.0, 0.0, 0.0])
     torch.testing.assert_close(out, torch.stack([want0, want1, want2]))
     torch.testing.assert_close(out.sum(-1), torch.ones(3))
+
+
+def test_fused_soft_update_equals_torchrl_soft_update():
+    from torchrl.objectives import SoftUpdate
+
+    torch.manual_seed(0)
+    keys = ["rangefinder", "state"]
+    env = make_toy_env()
+    ag = agents.get("td3")
+    losses = []
+    for _ in range(2):
+        torch.manual_seed(0)
+        actor, critic = ag.make_actor(ALGO_CFG, env, keys), ag.make_critic(ALGO_CFG, env, keys)
+        losses.append(ag.make_loss(ALGO_CFG, actor, critic, env, keys))
+    ours, ref = ag.make_target_updater(ALGO_CFG, losses[0]), SoftUpdate(losses[1], tau=float(ALGO_CFG.tau))
+    for step in range(3):
+        for loss in losses:
+            with torch.no_grad():
+                for p in loss.parameters():
+                    p.add_(0.01 * (step + 1))
+        ours.step()
+        ref.step()
+    for a, b in zip(losses[0].target_qvalue_network_params.values(True, True), losses[1].target_qvalue_network_params.values(True, True)):
+        assert torch.equal(a, b)
+    for a, b in zip(losses[0].target_actor_network_params.values(True, True), losses[1].target_actor_network_params.values(True, True)):
+        assert torch.equal(a, b)

@@ -29,7 +29,8 @@ from torcsrl.agents.networks import Critic, DeterministicActor
 from torcsrl.objectives.common import ObsUnpacker, bind_target, discount
 
 
-def categorical_projection(next_probs: torch.Tensor, reward: torch.Tensor, gamma: torch.Tensor | float, support: torch.Tensor) -> torch.Tensor:
+def categorical_projection(next_probs: torch.Tensor, reward: torch.Tensor, gamma: torch.Tensor | float, support: torch.Tensor,
+                           bounds: tuple[float, float] | None = None) -> torch.Tensor:
     """C51 projection of the distribution ``next_probs`` on ``support``, shifted by ``r + gamma * z``.
 
     Args:
@@ -37,24 +38,25 @@ def categorical_projection(next_probs: torch.Tensor, reward: torch.Tensor, gamma
         reward: ``[B]`` rewards (n-step sums).
         gamma: ``[B]`` or scalar effective discount, already zero where the episode terminated.
         support: ``[K]`` atoms ``z_j``, evenly spaced, increasing.
+        bounds: ``(z_0, z_{K-1})`` as Python floats, when the caller has them (no device sync).
 
     Returns:
         ``[B, K]`` probabilities: mass of ``Tz_j = clamp(r + gamma z_j, v_min, v_max)`` split between the
         two neighbouring atoms in proportion to closeness (all of it on one atom when ``Tz_j`` lands on it).
     """
     k = support.numel()
-    v_min, v_max = support[0], support[-1]
+    v_min, v_max = bounds if bounds is not None else (float(support[0]), float(support[-1]))
     dz = (v_max - v_min) / (k - 1)
     g = gamma if torch.is_tensor(gamma) else torch.tensor(gamma, dtype=support.dtype)
-    tz = (reward.reshape(-1, 1) + g.reshape(-1, 1) * support.reshape(1, -1)).clamp(v_min, v_max)
-    b = ((tz - v_min) / dz).clamp(0, k - 1)
+    tz = torch.addcmul(reward.reshape(-1, 1), g.reshape(-1, 1), support.reshape(1, -1)).clamp_(v_min, v_max)
+    b = tz.sub_(v_min).div_(dz).clamp_(0, k - 1)
     lo = b.floor()
     hi = b.ceil()
-    w_hi = b - lo  # 0 when b is integral: all mass goes to lo (== hi)
-    w_lo = 1.0 - w_hi
+    w_hi = b.sub_(lo)  # 0 when b is integral: all mass goes to lo (== hi)
+    p_hi = next_probs * w_hi
     out = torch.zeros_like(next_probs)
-    out.scatter_add_(1, lo.long(), next_probs * w_lo)
-    out.scatter_add_(1, hi.long(), next_probs * w_hi)
+    out.scatter_add_(1, lo.long(), next_probs - p_hi)
+    out.scatter_add_(1, hi.long(), p_hi)
     return out
 
 
@@ -122,6 +124,7 @@ class D4PGLoss(LossModule):
         self.__dict__["target_qvalue"] = bind_target(qvalue_network, self._modules["target_qvalue_network_params"])
         self.gamma = float(gamma)
         self.register_buffer("support", torch.linspace(float(v_min), float(v_max), qvalue_network.out_dim))
+        self._bounds = (float(v_min), float(v_max))
         self.register_buffer("min_action", torch.as_tensor(action_low, dtype=torch.float32).clone())
         self.register_buffer("max_action", torch.as_tensor(action_high, dtype=torch.float32).clone())
         self.obs = ObsUnpacker(obs_keys, list(image_keys), augment_shift)
@@ -144,8 +147,17 @@ class D4PGLoss(LossModule):
         w = self._maybe_get_priority_weight(td)
         return None if w is None else w.reshape(-1)
 
+    # ``actor_loss``/``value_loss`` are wrapped by TorchRL's LossModule metaclass (exploration and
+    # recurrent-mode contexts, ~20 us a call); the training step calls the ``_``-prefixed bodies.
     def actor_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
         """``-sum_j p_j(s, mu(s)) z_j`` with the critic's weights detached."""
+        return self._actor_loss(tensordict)
+
+    def value_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
+        """Cross-entropy between the projected target distribution and the predicted one."""
+        return self._value_loss(tensordict, td_error=True)
+
+    def _actor_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
         obs = self.obs(tensordict)
         action = self.actor_network(*obs)
         logits = self.qvalue_network.member(*obs, action, index=0)
@@ -154,8 +166,8 @@ class D4PGLoss(LossModule):
         loss = -q.mean() if w is None else -(q * w).mean()
         return loss, {"state_action_value_actor": q.detach().mean()}
 
-    def value_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
-        """Cross-entropy between the projected target distribution and the predicted one."""
+    def _value_loss(self, tensordict: TensorDictBase, td_error: bool) -> tuple[torch.Tensor, dict]:
+        """``td_error``: also return the per-sample cross-entropy (the priority of prioritized replay)."""
         nxt = tensordict.get("next")
         with torch.no_grad():
             next_obs = self.obs(tensordict, nxt=True)
@@ -165,7 +177,7 @@ class D4PGLoss(LossModule):
             term = nxt.get(self.tensor_keys.terminated).reshape(-1)
             g = discount(tensordict, self.gamma, self.tensor_keys.steps_to_next_obs)
             g = (g.reshape(-1) if torch.is_tensor(g) else torch.full_like(reward, g)) * (~term)
-            target = categorical_projection(next_probs, reward, g, self.support)
+            target = categorical_projection(next_probs, reward, g, self.support, self._bounds)
         logits = self.qvalue_network(*self.obs(tensordict), tensordict.get(self.tensor_keys.action))[0]
         logp = torch.log_softmax(logits, -1)
         ce = -(target * logp).sum(-1)
@@ -174,7 +186,10 @@ class D4PGLoss(LossModule):
         with torch.no_grad():
             pred = (logp.exp() * self.support).sum(-1)
             tv = (target * self.support).sum(-1)
-        return loss, {"td_error": ce.detach(), "pred_value": pred.mean(), "target_value": tv.mean()}
+        meta = {"pred_value": pred.mean(), "target_value": tv.mean()}
+        if td_error:
+            meta["td_error"] = ce.detach()
+        return loss, meta
 
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:

@@ -9,7 +9,9 @@ Metric names are namespaced (glossary):
   ``eval/steps`` — deterministic validation episodes (no noise, no buffer, no updates).
 * ``loss/qvalue``, ``loss/actor``, ``loss/pred_value``, ``loss/target_value``, ... — last update.
 * ``time/steps_per_s`` env steps per wall-clock second over the last logging window (collection
-  and updates together); ``time/updates_per_s``; ``time/elapsed_s``.
+  and updates together); ``time/updates_per_s``; ``time/elapsed_s`` wall-clock seconds since the
+  run (or resume) started; ``time/cpu_s`` CPU seconds this process used in that time (all its
+  threads: on a shared box, steps per CPU-second compare implementations better than steps/s).
 
 Backends (``logger.backends``): ``csv`` (TorchRL's CSVLogger; one file per metric under
 ``<run_dir>/logs/<exp>/scalars/``), ``tensorboard`` (only when installed; otherwise a one-line

@@ -1,80 +1,378 @@
-"""A pure-torch proportional prioritized sampler for TorchRL replay buffers.
+"""Replay memory of the training loop: a ring of env steps in which every observation is stored ONCE.
 
-TorchRL's ``PrioritizedSampler`` needs its C++ segment trees, and the ``torchrl`` 0.14.1 wheel's
-extension does not load against torch 2.13 (undefined symbol), so prioritized replay would be
-unavailable. :class:`TorchPrioritizedSampler` implements the same sampler contract with torch
-ops: P(i) = p_i^alpha / sum_j p_j^alpha (Schaul et al. 2016), importance weights
-``(N P(i))^-beta`` normalised by their maximum over the buffer, new transitions at the largest
-priority seen. Sampling is O(N) per batch (``torch.multinomial``): fine for the buffer sizes
-used here, slower than a sum tree past a few million transitions.
+Why not TorchRL's ``TensorDictReplayBuffer`` + ``MultiStepTransform``: with one env step per
+update, their per-call bookkeeping (writer, sampler, ``"index"`` keys, the transform's
+concatenations) cost ~0.3 ms per ``extend``, ~0.3 ms per ``sample`` and ~0.8 ms per n-step
+``inv`` on the project's CPU — 10-15 % of a TD3 step — and every transition kept its next
+observation, so pixel transitions took two frames. Here:
+
+* **Layout.** The env's ``streams`` parallel trajectories (cars x worker processes) are written
+  one env step at a time: step ``t`` of stream ``s`` is row ``t * streams + s`` (mod the ring
+  size), so the same stream's next step is ``streams`` rows further on. A row holds the
+  observation, the action, the reward and the end flags of one transition — no next
+  observation. The next observation of row ``i`` is the observation of row ``i + streams``,
+  except when the transition ended its episode (``done``): then the reset observation follows,
+  and the true final observation (needed to bootstrap a time-limit truncation) goes to a
+  *finals* table, with the row's ``"final"`` entry pointing at it (``-1`` otherwise).
+  Writing step ``t`` also writes its next observations into the rows step ``t + 1`` will
+  occupy, so the newest transitions are sampleable at once. Bytes per transition are those of
+  one observation + action + reward + 3 flags + a 4-byte pointer, plus one observation per
+  finished episode (:attr:`ReplayBuffer.bytes_per_transition`).
+* **N-step returns** (D4PG) are formed when sampling, from the stored 1-step rows:
+  ``R = sum_{k<=m} gamma^k r_{t+k}`` with the window ``m < n_steps`` cut at the first end of
+  episode, the next observation and end flags those after step ``t + m``, and
+  ``steps_to_next_obs = m + 1`` (the loss discounts with ``gamma ** steps_to_next_obs``) — what
+  TorchRL's ``MultiStepTransform`` computes. A transition becomes sampleable once its window is
+  complete (``n_steps - 1`` steps later). The stored rows do not depend on ``n_steps``, so a
+  dumped buffer can be shared between algorithms.
+* **Sampling** draws uniform (or prioritized, :class:`Priorities`) row numbers with the torch
+  generator and gathers each stored tensor with ``index_select``; the batch is a TensorDict
+  with the keys the losses read (obs, ``action``, ``("next", obs)``, ``("next", "reward")``,
+  ``("next", "done"|"terminated"|"truncated")``, ``steps_to_next_obs`` for n > 1, ``index``
+  and, when prioritized, ``priority_weight``).
+
+Storage is RAM (``torch.empty``: pages are touched only as rows are written) or memory-mapped
+files (``storage="disk"``). :meth:`ReplayBuffer.dumps`/:meth:`ReplayBuffer.loads` write/read a
+folder (``meta.json`` + memory-mapped TensorDicts); a buffer with the same layout is restored
+row for row (the exact-resume path), another capacity or ``n_steps`` gets the newest rows.
 """
 
 from __future__ import annotations
 
+import json
+import math
+from pathlib import Path
+from typing import Sequence
+
 import torch
-from torchrl.data.replay_buffers.samplers import Sampler
+from tensordict import TensorDict, TensorDictBase
+
+FORMAT = "torcsrl-replay"
+VERSION = 1
+FLAGS = ("done", "terminated", "truncated")
 
 
-class TorchPrioritizedSampler(Sampler):
-    """Proportional prioritized sampling.
+class Priorities:
+    """Proportional prioritized sampling over the ring's rows (Schaul et al. 2016), pure torch.
+
+    ``P(i) = p_i^alpha / sum_j p_j^alpha`` over the sampleable rows (the others hold priority 0);
+    importance weights ``(N P(i))^-beta`` normalised by their maximum over the buffer; rows
+    entering the sampleable window get the largest priority seen. O(rows) per sample
+    (``torch.multinomial``). (TorchRL's ``PrioritizedSampler`` needs its C++ segment trees, whose
+    extension does not load against torch 2.13 in the ``torchrl`` 0.14.1 wheel.)
 
     Args:
-        max_capacity: the storage size.
+        rows: ring size.
         alpha: priority exponent [-] (0 = uniform).
         beta: importance-sampling exponent [-].
-        eps: added to every priority so none is zero.
+        eps: added to every updated priority so none is zero.
     """
 
-    def __init__(self, max_capacity: int, alpha: float = 0.6, beta: float = 0.4, eps: float = 1e-6):
-        super().__init__()
+    def __init__(self, rows: int, alpha: float = 0.6, beta: float = 0.4, eps: float = 1e-6):
         self.alpha, self.beta, self.eps = float(alpha), float(beta), float(eps)
-        self._prio = torch.zeros(int(max_capacity), dtype=torch.float64)
-        self._max = 1.0
+        self.prio = torch.zeros(int(rows), dtype=torch.float64)
+        self.max = 1.0
 
-    def sample(self, storage, batch_size: int):
-        n = len(storage)
-        if n == 0:
-            raise RuntimeError("cannot sample from an empty replay buffer")
-        p = self._prio[:n].pow(self.alpha)
+    def admit(self, rows: slice) -> None:
+        self.prio[rows] = self.max
+
+    def retire(self, rows: slice) -> None:
+        self.prio[rows] = 0.0
+
+    def sample(self, n: int, batch_size: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """(rows, importance weights) of ``batch_size`` draws; ``n`` sampleable rows."""
+        p = self.prio.pow(self.alpha)
         probs = p / p.sum()
         index = torch.multinomial(probs, batch_size, replacement=True)
         w = (n * probs[index]).pow(-self.beta)
-        w_max = (n * probs.min()).pow(-self.beta)
-        return index, {"priority_weight": (w / w_max).to(torch.float32)}
+        w_max = (n * probs[probs > 0].min()).pow(-self.beta)
+        return index, (w / w_max).to(torch.float32)
 
-    def extend(self, index: torch.Tensor) -> None:
-        self._prio[torch.as_tensor(index).reshape(-1)] = self._max
-
-    def add(self, index: int) -> None:
-        self._prio[index] = self._max
-
-    def update_priority(self, index, priority, *, storage=None) -> None:
-        index = torch.as_tensor(index).reshape(-1)
-        pr = torch.as_tensor(priority, dtype=torch.float64).reshape(-1).abs() + self.eps
-        self._prio[index] = pr
-        self._max = max(self._max, float(pr.max()))
-
-    def _empty(self) -> None:
-        self._prio.zero_()
-        self._max = 1.0
+    def update(self, index: torch.Tensor, priority: torch.Tensor) -> None:
+        pr = priority.detach().to(torch.float64).reshape(-1).abs() + self.eps
+        self.prio[index.reshape(-1)] = pr
+        self.max = max(self.max, float(pr.max()))
 
     def state_dict(self) -> dict:
-        return {"prio": self._prio.clone(), "max": self._max}
+        return {"prio": self.prio.clone(), "max": self.max}
 
-    def load_state_dict(self, state_dict: dict) -> None:
-        self._prio.copy_(state_dict["prio"])
-        self._max = float(state_dict["max"])
+    def load_state_dict(self, state: dict) -> None:
+        self.prio.copy_(state["prio"])
+        self.max = float(state["max"])
 
-    def dumps(self, path) -> None:
-        from pathlib import Path
 
-        Path(path).mkdir(parents=True, exist_ok=True)
-        torch.save(self.state_dict(), Path(path) / "priorities.pt")
+def _empty_like_rows(td: TensorDictBase, rows: int) -> TensorDict:
+    """A TensorDict of ``rows`` uninitialised rows shaped like one row of ``td`` (RAM pages untouched)."""
+    return td.apply(lambda t: torch.empty((rows, *t.shape[1:]), dtype=t.dtype), batch_size=[rows])
 
-    def loads(self, path) -> None:
-        from pathlib import Path
 
-        self.load_state_dict(torch.load(Path(path) / "priorities.pt", weights_only=True))
+class ReplayBuffer:
+    """Ring of env steps; samples 1-step or n-step transitions (see the module docstring).
 
-    def _sampleable_count(self, storage) -> int:  # noqa: D401 - TorchRL hook
-        return len(storage)
+    Args:
+        capacity: transitions kept (rounded up to a multiple of ``streams``).
+        batch_size: transitions per :meth:`sample`.
+        obs_keys: observation keys (stored once per row; next observations reconstructed).
+
+    Keyword Args:
+        streams: parallel trajectories per env step (cars x worker processes); every
+            :meth:`extend` brings whole env steps of all of them.
+        n_steps: n of the n-step returns (1 = plain transitions).
+        gamma: discount per env step (n-step returns only).
+        storage: ``"ram"`` or ``"disk"`` (memory-mapped files under ``path``).
+        path: folder of the disk storage.
+        prioritized: proportional prioritized sampling (:class:`Priorities`).
+        alpha, beta: its exponents.
+        priority_key: where the loss writes the per-sample priority (read by
+            :meth:`update_tensordict_priority`).
+    """
+
+    def __init__(self, capacity: int, batch_size: int, obs_keys: Sequence[str], *, streams: int = 1, n_steps: int = 1, gamma: float = 0.99,
+                 storage: str = "ram", path: str | Path | None = None, prioritized: bool = False, alpha: float = 0.6, beta: float = 0.4,
+                 priority_key: str = "td_error"):
+        if storage not in ("ram", "disk"):
+            raise ValueError(f"unknown buffer.storage {storage!r}; known: ram, disk")
+        if storage == "disk" and path is None:
+            raise ValueError("buffer.storage=disk needs a folder (buffer.path)")
+        if int(streams) < 1 or int(n_steps) < 1 or int(capacity) < 1:
+            raise ValueError(f"capacity, streams and n_steps must be >= 1, got {capacity}, {streams}, {n_steps}")
+        self.streams, self.n_steps, self.gamma = int(streams), int(n_steps), float(gamma)
+        self.capacity = math.ceil(int(capacity) / self.streams) * self.streams
+        self.batch_size = int(batch_size)
+        self.obs_keys = list(obs_keys)
+        self.storage_kind, self.path = storage, None if path is None else Path(path)
+        self.priority_key = priority_key
+        self.lag = (self.n_steps - 1) * self.streams  # rows whose n-step window is still open
+        self._offsets = torch.arange(self.n_steps) * self.streams  # rows of the same stream's next steps
+        self._discounts = self.gamma ** torch.arange(self.n_steps, dtype=torch.float32)
+        # ring rows: the kept transitions, the open windows, and one step of next observations
+        self.rows = self.capacity + self.lag + self.streams
+        self.written = 0  # rows written so far (row r lives at r % self.rows)
+        self.finals_written = 0
+        self._rows: TensorDict | None = None  # obs keys, action, reward, flags, final
+        self._finals: TensorDict | None = None  # final observations of done rows
+        self._leaves: list = []
+        self.priorities = Priorities(self.rows, alpha, beta) if prioritized else None
+
+    # ---- sizes ------------------------------------------------------------------------------
+    def __len__(self) -> int:
+        """Sampleable transitions."""
+        return max(0, min(self.written - self.lag, self.capacity))
+
+    @property
+    def bytes_per_transition(self) -> int:
+        """Bytes one stored row takes (the finals table adds one observation per finished episode)."""
+        if self._rows is None:
+            return 0
+        return int(sum(t.element_size() * t[0].numel() for t in self._rows.values(True, True)))
+
+    @property
+    def bytes_per_final(self) -> int:
+        """Bytes one final observation takes (one per finished episode)."""
+        if self._finals is None:
+            return 0
+        return int(sum(t.element_size() * t[0].numel() for t in self._finals.values(True, True)))
+
+    # ---- writing ----------------------------------------------------------------------------
+    def _allocate(self, row: TensorDict, final: TensorDict) -> None:
+        rows, finals = _empty_like_rows(row, self.rows), _empty_like_rows(final, self.rows)
+        if self.storage_kind == "disk":
+            self.path.mkdir(parents=True, exist_ok=True)
+            rows = rows.memmap_like(prefix=str(self.path / "rows"))
+            finals = finals.memmap_like(prefix=str(self.path / "finals"))
+        self._rows, self._finals = rows, finals
+        self._obs = [self._rows[k] for k in self.obs_keys]
+        self._fin = [self._finals[k] for k in self.obs_keys]
+        self._final = self._rows["final"]
+        self._leaves = [self._rows[k] for k in ("action", "reward", *FLAGS)]
+
+    def extend(self, data: TensorDictBase) -> None:
+        """Add whole env steps: ``data`` holds ``streams x T`` transitions, time on the last batch dim when
+        ``T > 1`` (``[streams, T]``, ``[T]`` for one stream; one step may come as ``[streams]`` or ``[]``)."""
+        n, nb = self.streams, data.batch_dims
+        if data.numel() % n:
+            raise ValueError(f"replay: got {data.numel()} transitions, not whole steps of {n} streams")
+        steps = data.numel() // n
+        nxt = data.get("next")
+        get = [data.get(k) for k in self.obs_keys], [nxt.get(k) for k in self.obs_keys], \
+            [data.get("action"), *(nxt.get(k) for k in ("reward", *FLAGS))]
+        # [streams, T, ...] views of every tensor (plain tensor ops: TensorDict reshapes cost ~0.1 ms each)
+        obs, nobs, rest = ([x.reshape(n, steps, *x.shape[nb:]) for x in xs] for xs in get)
+        if self._rows is None:
+            row = TensorDict({k: o[:, 0] for k, o in zip(self.obs_keys, obs)}, batch_size=[n])
+            row.update({k: x[:, 0] for k, x in zip(("action", "reward", *FLAGS), rest)})
+            row.set("final", torch.full((n,), -1, dtype=torch.int32))
+            self._allocate(row, TensorDict({k: o[:, 0] for k, o in zip(self.obs_keys, nobs)}, batch_size=[n]))
+        for t in range(steps):
+            self._write_step([o[:, t] for o in obs], [o[:, t] for o in nobs], [x[:, t] for x in rest])
+
+    def _write_step(self, obs: list, nobs: list, rest: list) -> None:
+        n = self.streams
+        p = self.written % self.rows
+        q = (p + n) % self.rows  # where the next step goes: its observations are our next observations
+        for dst, o, no in zip(self._obs, obs, nobs):
+            dst[p:p + n].copy_(o)
+            dst[q:q + n].copy_(no)
+        for dst, x in zip(self._leaves, rest):
+            dst[p:p + n].copy_(x)
+        final = self._final
+        final[p:p + n] = -1
+        done = rest[2].reshape(n)
+        if bool(done.any()):
+            idx = done.nonzero().squeeze(-1)
+            slots = (self.finals_written + torch.arange(idx.numel())) % self.rows
+            for dst, no in zip(self._fin, nobs):
+                dst[slots] = no[idx]
+            final[p + idx] = slots.to(torch.int32)
+            self.finals_written += idx.numel()
+        self.written += n
+        if self.priorities is not None:
+            newest = self.written - self.lag  # rows [newest - n, newest) just became sampleable
+            if newest > 0:
+                a = (newest - n) % self.rows
+                self.priorities.admit(slice(a, a + n))
+            old = self.written - self.lag - self.capacity  # rows [old - n, old) just left the window
+            if old > 0:
+                a = (old - n) % self.rows
+                self.priorities.retire(slice(a, a + n))
+
+    # ---- reading ----------------------------------------------------------------------------
+    def _next_obs(self, rows: torch.Tensor, done: torch.Tensor) -> list[torch.Tensor]:
+        """Observations after the transitions in ``rows`` (``done``: their episode ended there)."""
+        succ = (rows + self.streams) % self.rows
+        out = [o.index_select(0, succ) for o in self._obs]
+        if bool(done.any()):
+            sel = done.nonzero().squeeze(-1)
+            slots = self._rows["final"].index_select(0, rows.index_select(0, sel)).long()
+            for o, fin in zip(out, self._fin):
+                o[sel] = fin.index_select(0, slots)
+        return out
+
+    def transitions(self, rows: torch.Tensor) -> TensorDict:
+        """The (n-step) transitions starting at ring rows ``rows`` (a 1-D long tensor)."""
+        st = self._rows
+        out = {k: o.index_select(0, rows) for k, o in zip(self.obs_keys, self._obs)}
+        out["action"] = st["action"].index_select(0, rows)
+        if self.n_steps == 1:
+            end = rows
+            reward = st["reward"].index_select(0, rows)
+            flags = {f: st[f].index_select(0, rows) for f in FLAGS}
+            extra = {}
+        else:  # the window t .. t + n - 1, cut after the first end of episode
+            n = self.n_steps
+            window = (rows.unsqueeze(1) + self._offsets) % self.rows  # [B, n]
+            r = st["reward"][window].squeeze(-1)  # [B, n]
+            ended = st["done"][window].squeeze(-1)
+            inside = torch.cumprod(torch.cat([torch.ones_like(ended[:, :1]), ~ended[:, :-1]], 1).to(r.dtype), 1)  # step k counts
+            steps = inside.sum(1, keepdim=True).to(torch.int64)  # m + 1
+            reward = (r * inside * self._discounts).sum(1, keepdim=True)
+            end = window.gather(1, steps - 1).squeeze(1)
+            flags = {f: st[f].index_select(0, end) for f in FLAGS}
+            extra = {"steps_to_next_obs": steps}
+        nxt = dict(zip(self.obs_keys, self._next_obs(end, flags["done"].reshape(-1))))
+        nxt.update(reward=reward, **flags)
+        b = rows.numel()
+        return TensorDict({**out, **extra, "index": rows, "next": TensorDict(nxt, batch_size=[b])}, batch_size=[b])
+
+    def sample(self, batch_size: int | None = None) -> TensorDict:
+        """A batch of transitions, uniform (or prioritized) over the sampleable ones."""
+        b = int(batch_size or self.batch_size)
+        n = len(self)
+        if n == 0:
+            raise RuntimeError("cannot sample from an empty replay buffer")
+        if self.priorities is None:
+            rows = (torch.randint(0, n, (b,)) + (self.written - self.lag - n)) % self.rows
+            return self.transitions(rows)
+        rows, w = self.priorities.sample(n, b)
+        td = self.transitions(rows)
+        td.set("priority_weight", w)
+        return td
+
+    def update_tensordict_priority(self, td: TensorDictBase) -> None:
+        """Set the priorities of the sampled rows ``td["index"]`` to ``td[priority_key]``."""
+        if self.priorities is not None:
+            self.priorities.update(td.get("index"), td.get(self.priority_key))
+
+    def __getitem__(self, index) -> TensorDict:
+        """Transitions by position among the sampleable ones, oldest first (``buffer[:]``: all)."""
+        pos = torch.arange(len(self))[index]
+        return self.transitions(((pos.reshape(-1) + (self.written - self.lag - len(self))) % self.rows))
+
+    # ---- persistence ------------------------------------------------------------------------
+    def _meta(self) -> dict:
+        return {"format": FORMAT, "version": VERSION, "capacity": self.capacity, "rows": self.rows, "streams": self.streams,
+                "n_steps": self.n_steps, "written": self.written, "finals_written": self.finals_written, "obs_keys": self.obs_keys,
+                "priorities": None if self.priorities is None else self.priorities.max}
+
+    def dumps(self, path: str | Path) -> None:
+        """Write the buffer to the folder ``path`` (rows and finals actually used, memory-mapped)."""
+        path = Path(path)
+        path.mkdir(parents=True, exist_ok=True)
+        if self._rows is not None:
+            self._rows[: min(self.written + self.streams, self.rows)].memmap(prefix=str(path / "rows"), copy_existing=True)
+            if self.finals_written:
+                self._finals[: min(self.finals_written, self.rows)].memmap(prefix=str(path / "finals"), copy_existing=True)
+        if self.priorities is not None:
+            torch.save(self.priorities.state_dict(), path / "priorities.pt")
+        (path / "meta.json").write_text(json.dumps(self._meta()))
+
+    def loads(self, path: str | Path) -> None:
+        """Read a folder written by :meth:`dumps` (same layout: row for row; otherwise the newest rows)."""
+        path = Path(path)
+        try:
+            meta = json.loads((path / "meta.json").read_text())
+        except (OSError, ValueError):
+            raise ValueError(f"{path} is not a replay buffer folder written by torcsrl (no readable meta.json)") from None
+        if meta.get("format") != FORMAT or meta.get("version") != VERSION:
+            raise ValueError(f"{path} holds a {meta.get('format')} v{meta.get('version')} buffer; this torcsrl reads {FORMAT} v{VERSION}")
+        if meta["streams"] != self.streams or meta["obs_keys"] != self.obs_keys:
+            raise ValueError(f"replay buffer {path} has {meta['streams']} streams of {meta['obs_keys']}; this run has {self.streams} of {self.obs_keys}")
+        if meta["written"] == 0:
+            return
+        rows = TensorDict.load_memmap(str(path / "rows"))
+        finals = TensorDict.load_memmap(str(path / "finals")) if meta["finals_written"] else None
+        if self._rows is None:
+            fin = finals[:1] if finals is not None else TensorDict({k: rows[k][:1] for k in self.obs_keys}, batch_size=[1])
+            self._allocate(rows[:1], fin)
+        prio = torch.load(path / "priorities.pt", weights_only=True) if (path / "priorities.pt").is_file() else None
+        if meta["rows"] == self.rows:  # the same layout: restore row for row
+            self._rows[: rows.shape[0]].update_(rows)
+            if finals is not None:
+                self._finals[: finals.shape[0]].update_(finals)
+            self.written, self.finals_written = int(meta["written"]), int(meta["finals_written"])
+            if self.priorities is not None:
+                if prio is not None:
+                    self.priorities.load_state_dict(prio)
+                else:
+                    self._admit_all()
+            return
+        # another capacity or n_steps: copy the newest whole steps (and the next observations after them)
+        src_rows, w = int(meta["rows"]), int(meta["written"])
+        keep = min(w, src_rows - self.streams, self.capacity + self.lag)
+        logical = torch.arange(w - keep, w + self.streams)
+        src = logical % src_rows
+        data = rows[src]
+        fin = data["final"].long()
+        fin[keep:] = -1  # the next step's rows: only their observations were written
+        has = fin >= 0
+        new_fin = torch.full_like(fin, -1)
+        if bool(has.any()):
+            k = int(has.sum())
+            new_fin[has] = torch.arange(k)
+            self._finals[:k].update_(finals[fin[has]])
+            self.finals_written = k
+        else:
+            self.finals_written = 0
+        data.set("final", new_fin.to(torch.int32))
+        self._rows[: logical.numel()].update_(data)
+        self.written = keep
+        if self.priorities is not None:
+            self._admit_all()
+
+    def _admit_all(self) -> None:
+        self.priorities.prio.zero_()
+        n = len(self)
+        if n:
+            first = self.written - self.lag - n
+            pos = (torch.arange(first, first + n)) % self.rows
+            self.priorities.prio[pos] = self.priorities.max

@@ -1,0 +1,489 @@
+"""Policies for evaluation: a checkpoint's deterministic actor, the scripted expert, random actions.
+
+:func:`load_policy` turns a *spec* into a :class:`Policy`, a callable ``td -> td`` that writes
+``"action"`` (a TensorDictModule-like object; :meth:`CheckpointPolicy.as_module` gives the
+actual ``TensorDictModule``):
+
+============================  =================================================================
+spec                          policy
+============================  =================================================================
+``path/to/ckpt.pt``           the deterministic actor of a torcsrl checkpoint: a training
+                              checkpoint (``torcsrl.train``) or a policy file written by
+                              :func:`export_policy` (actor weights + config only)
+``reference``                 the shipped reference driver, :data:`REFERENCE_POLICY`
+``expert``                    the scripted expert (:mod:`torcsrl.envs.expert`: pure pursuit on
+                              a racing line + speed profile) driven from the ``state``
+                              observation and ``info/distFromStart`` (an observation adapter:
+                              degrading ``state`` degrades it; the rangefinder it ignores)
+``heuristic``                 a sensor-only driver in the style of the TORCS SCR sample robot:
+                              steers from ``angle`` / ``trackPos`` and the longest rangefinder
+                              beam, picks its speed from the free distance ahead
+``random``                    uniform random actions in [-1, 1], seeded per episode (R_random)
+============================  =================================================================
+
+Each policy says which observation keys it reads (``obs_keys``) and which env settings it needs
+(``env_overrides``: sensors, camera size, action mode); the evaluator builds the env from them and
+calls :meth:`Policy.check_env` before any work, so a checkpoint written for another observation
+layout fails with ONE line (:class:`PolicyError`). ``fingerprint`` is a hash of the policy's
+file bytes (or of the code of a built-in driver): report caches are keyed by it.
+
+CLI: ``python -m torcsrl.policies export CKPT OUT`` writes a policy file (what the shipped
+reference driver is); ``python -m torcsrl.policies info SPEC`` prints what a spec loads.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import inspect
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+
+__all__ = [
+    "BUILTIN_POLICIES",
+    "REFERENCE_POLICY",
+    "Policy",
+    "PolicyError",
+    "EpisodeContext",
+    "CheckpointPolicy",
+    "ExpertPolicy",
+    "HeuristicPolicy",
+    "RandomPolicy",
+    "load_policy",
+    "export_policy",
+    "file_fingerprint",
+]
+
+#: Where the shipped reference driver lives (a policy file written by :func:`export_policy`).
+REFERENCE_POLICY = Path(__file__).resolve().parent / "assets" / "reference_td3.pt"
+#: Names of the built-in policies (anything else is a checkpoint path).
+BUILTIN_POLICIES = ("expert", "heuristic", "random", "reference")
+
+
+class PolicyError(ValueError):
+    """A policy that cannot be loaded or does not fit the env (one-line message)."""
+
+
+@dataclass
+class EpisodeContext:
+    """What a policy may know at the start of an episode.
+
+    Attributes:
+        track: the :class:`~torcsrl.envs.track.Track` being driven (with its surface).
+        seed: a seed for the policy's own randomness in this episode.
+        episode: the episode index within the cell.
+        dt: the env's control step [s].
+    """
+
+    track: Any
+    seed: int = 0
+    episode: int = 0
+    dt: float = 0.02
+
+
+def file_fingerprint(path: str | Path) -> str:
+    """sha256 of a file's bytes (hex)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _code_fingerprint(*objs: Any) -> str:
+    h = hashlib.sha256()
+    for o in objs:
+        try:
+            src = inspect.getsource(o)
+        except (OSError, TypeError):
+            src = repr(o)
+        h.update(src.encode())
+    return h.hexdigest()
+
+
+class Policy:
+    """Base class: ``policy(td)`` writes ``"action"`` into ``td`` and returns it.
+
+    Attributes:
+        name: short label for tables and file names.
+        spec: what :func:`load_policy` was given.
+        obs_keys: observation keys the policy reads.
+        env_overrides: :func:`torcsrl.envs.make_env` keywords the policy needs.
+        fingerprint: hash of the policy's bytes (file or code).
+        action_dim: size of the action it writes.
+    """
+
+    name: str = "policy"
+    spec: str = ""
+    obs_keys: tuple[str, ...] = ()
+    env_overrides: dict[str, Any]
+    fingerprint: str = ""
+    action_dim: int = 2
+
+    def reset(self, ctx: EpisodeContext) -> None:
+        """Called at the start of every episode, after the env reset."""
+
+    def __call__(self, td: TensorDictBase) -> TensorDictBase:
+        raise NotImplementedError
+
+    def check_env(self, env) -> None:
+        """Raise :class:`PolicyError` (one line) if ``env`` lacks an observation key or its shapes
+        or action size differ from what the policy was built for."""
+        spec = env.observation_spec
+        nb = len(env.batch_size)
+        have = set(spec.keys(True, True))
+        missing = [k for k in self.obs_keys if k not in have]
+        if missing:
+            raise PolicyError(f"policy {self.name!r} reads {missing}, which the env does not produce (it has {sorted(map(str, have))})")
+        for k, shape in getattr(self, "obs_shapes", {}).items():
+            got = tuple(spec[k].shape[nb:])
+            if got != tuple(shape):
+                raise PolicyError(f"policy {self.name!r} was built for {k} of shape {tuple(shape)}, the env gives {got} "
+                                  f"({self.spec}: {self._layout_hint()})")
+        adim = int(env.action_spec.shape[-1])
+        if adim != self.action_dim:
+            raise PolicyError(f"policy {self.name!r} writes {self.action_dim} action values, the env takes {adim}")
+
+    def _layout_hint(self) -> str:
+        return ", ".join(f"{k}:{'x'.join(map(str, s))}" for k, s in getattr(self, "obs_shapes", {}).items())
+
+    def describe(self) -> dict[str, Any]:
+        """JSON-friendly identity (stored with every result)."""
+        return {"name": self.name, "spec": self.spec, "kind": type(self).__name__, "fingerprint": self.fingerprint,
+                "obs_keys": list(self.obs_keys)}
+
+
+# --------------------------------------------------------------------------------------------
+# Checkpoints
+# --------------------------------------------------------------------------------------------
+def _parse_layout(layout: str) -> dict[str, tuple[int, ...]]:
+    out = {}
+    for part in filter(None, str(layout).split(",")):
+        k, _, shp = part.partition(":")
+        out[k] = tuple(int(x) for x in shp.split("x") if x)
+    return out
+
+
+class CheckpointPolicy(Policy):
+    """The deterministic actor mu(s) of a torcsrl checkpoint (no exploration noise)."""
+
+    def __init__(self, path: str | Path, name: str | None = None) -> None:
+        from omegaconf import OmegaConf
+        from torchrl.data import Bounded, Composite, Unbounded
+
+        from torcsrl import agents
+        from torcsrl.utils.checkpoint import CheckpointError, load_checkpoint
+
+        path = Path(path)
+        self.path = path
+        self.spec = str(path)
+        self.name = name or path.stem
+        try:
+            ck = load_checkpoint(path)
+        except CheckpointError as err:
+            raise PolicyError(str(err)) from None
+        meta = ck["meta"]
+        try:
+            cfg = OmegaConf.create(ck["config"])
+            algo = str(meta["algo"])
+            layout = _parse_layout(meta["obs_layout"])
+            action_dim = int(meta["action_dim"])
+        except Exception as err:  # noqa: BLE001 - any malformed header means the same thing
+            raise PolicyError(f"checkpoint {path} lacks its config or meta ({type(err).__name__}: {err}); expected one written by torcsrl.train") from None
+        env_name = str(cfg.get("env", {}).get("name", "race"))
+        if env_name != "race":
+            raise PolicyError(f"checkpoint {path} was trained on env {env_name!r} ({meta['obs_layout']}); evaluation drives the race env")
+        obs_keys = list(cfg.get("obs_keys") or cfg.env.sensors)
+        if sorted(obs_keys) != sorted(layout):
+            raise PolicyError(f"checkpoint {path}: obs_keys {obs_keys} do not match its obs_layout {meta['obs_layout']!r}")
+        self.obs_keys = tuple(obs_keys)
+        self.obs_shapes = {k: layout[k] for k in obs_keys}
+        self.action_dim = action_dim
+        self.algo = algo
+        specs = {}
+        for k, shp in self.obs_shapes.items():
+            dtype = torch.uint8 if k == "pixels" else torch.float32
+            specs[k] = Unbounded(shp, dtype=dtype)
+        fake_env = SimpleNamespace(observation_spec=Composite(specs, shape=()),
+                                   action_spec=Bounded(-1.0, 1.0, (action_dim,), dtype=torch.float32))
+        try:
+            self.actor = agents.get(algo).make_actor(cfg.algo, fake_env, obs_keys)
+        except Exception as err:  # noqa: BLE001
+            raise PolicyError(f"checkpoint {path}: cannot rebuild its {algo} actor ({type(err).__name__}: {err})") from None
+        if "actor" in ck:
+            sd = ck["actor"]
+        else:
+            prefix = "actor_network_params."
+            sd = {k[len(prefix):]: v for k, v in ck.get("loss", {}).items() if k.startswith(prefix)}
+        if not sd:
+            raise PolicyError(f"checkpoint {path} holds no actor weights (neither 'actor' nor 'loss/actor_network_params')")
+        try:
+            self.actor.load_state_dict(sd, strict=True)
+        except RuntimeError as err:
+            first = str(err).strip().splitlines()
+            raise PolicyError(f"checkpoint {path}: actor weights do not fit the {algo} actor of its config ({first[1].strip() if len(first) > 1 else first[0]})") from None
+        self.actor._unit = bool((self.actor.a_mid == 0).all() and (self.actor.a_half == 1).all())
+        self.actor.eval()
+        for prm in self.actor.parameters():
+            prm.requires_grad_(False)
+        camera = cfg.env.get("camera") if any(k in ("pixels", "depth") for k in obs_keys) else None
+        self.env_overrides = {"sensors": tuple(obs_keys)}
+        if camera:
+            self.env_overrides["camera"] = OmegaConf.to_container(camera, resolve=True)
+        if action_dim == 3:
+            self.env_overrides["action_mode"] = "separate"
+        self.fingerprint = file_fingerprint(path)
+        self.config_yaml = ck["config"]
+        self.meta = dict(meta)
+
+    def as_module(self):
+        """The actor as a ``TensorDictModule`` (obs keys -> ``"action"``)."""
+        from tensordict.nn import TensorDictModule
+
+        return TensorDictModule(self.actor, in_keys=list(self.obs_keys), out_keys=["action"])
+
+    @torch.no_grad()
+    def __call__(self, td: TensorDictBase) -> TensorDictBase:
+        td.set("action", self.actor(*(td.get(k) for k in self.obs_keys)))
+        return td
+
+
+def export_policy(checkpoint: str | Path, out: str | Path) -> Path:
+    """Write the deterministic actor of ``checkpoint`` (weights, meta, config; no optimiser,
+    buffer or RNG state) to ``out`` — the format of the shipped reference driver."""
+    from torcsrl.utils.checkpoint import save_checkpoint
+
+    pol = CheckpointPolicy(checkpoint)
+    meta = {k: v for k, v in pol.meta.items() if k not in ("format", "version")}
+    meta.update(kind="policy", source=Path(checkpoint).name)
+    return save_checkpoint(out, {"meta": meta, "actor": pol.actor.state_dict(), "config": pol.config_yaml})
+
+
+# --------------------------------------------------------------------------------------------
+# The expert, driven from observations
+# --------------------------------------------------------------------------------------------
+def _state_slot(name: str) -> int:
+    from torcsrl.envs.sensors import STATE_SLOTS
+
+    return STATE_SLOTS.index(name)
+
+
+class ExpertPolicy(Policy):
+    """The scripted expert (:class:`torcsrl.envs.expert.ExpertDriver`) as a policy over observations.
+
+    The driver needs the car's pose, velocities and wheel spin. They are rebuilt each step from
+    the ``state`` observation (angle to the track axis, trackPos, speedX/Y [km/h], wheel spin)
+    and the lap position ``info/distFromStart`` [m] with the track map: ``d`` = trackPos times
+    the half-width on that side, ``(x, y) = to_world(s, d)``, ``yaw = heading(s) + angle``.
+    So a degraded ``state`` degrades the expert; it never reads the rangefinder.
+
+    Args:
+        mu_margin: fraction of the road's grip the expert's speed profile uses.
+        vehicle: vehicle parameter file (must be the env's).
+    """
+
+    name = "expert"
+
+    def __init__(self, mu_margin: float = 0.85, vehicle: str = "default") -> None:
+        from torcsrl.envs import expert as _expert
+        from torcsrl.envs.vehicle import VehicleParams
+
+        self.params = VehicleParams.load(vehicle)
+        self.mu_margin = float(mu_margin)
+        self.spec = "expert"
+        self.obs_keys = ("state",)
+        self.env_overrides = {"sensors": ("state",)}
+        self.fingerprint = _code_fingerprint(ExpertPolicy, _expert)
+        self._drivers: dict[tuple[str, str], Any] = {}
+        self.driver = None
+        self.track = None
+        self._i = {n: _state_slot(n) for n in ("angle_rad", "trackPos", "speedX_kmh", "speedY_kmh", "wheelSpinVel_fl")}
+
+    def reset(self, ctx: EpisodeContext) -> None:
+        t = ctx.track
+        key = (t.name, t.default_surface, round(float(t.length), 3))
+        if key not in self._drivers:
+            from torcsrl.envs import expert as _expert
+
+            self._drivers[key] = _expert.ExpertDriver(t, self.params, mu_margin=self.mu_margin)
+        self.driver = self._drivers[key]
+        self.track = t
+        self.driver.reset(0.0)
+        self._first = True
+        self._dt = float(ctx.dt)
+        self._prev_yaw: float | None = None
+
+    def _car(self, td: TensorDictBase) -> SimpleNamespace:
+        st = td.get("state").reshape(-1).tolist()
+        s = float(td.get(("info", "distFromStart")).reshape(-1)[0])
+        t = self.track
+        s = s % t.length
+        angle, tp = st[self._i["angle_rad"]], st[self._i["trackPos"]]
+        wl, wr = t.width(s)
+        d = tp * float(wl) if tp >= 0 else tp * float(wr)
+        x, y = (float(v) for v in t.to_world(s, d))
+        yaw = float(t.heading(s)) + angle
+        vx, vy = st[self._i["speedX_kmh"]] / 3.6, st[self._i["speedY_kmh"]] / 3.6
+        w0 = self._i["wheelSpinVel_fl"]
+        # the yaw rate is not observed: a finite difference of the rebuilt yaw
+        yaw_rate = 0.0 if self._prev_yaw is None else ((yaw - self._prev_yaw + math.pi) % (2 * math.pi) - math.pi) / self._dt
+        self._prev_yaw = yaw
+        c, sn = math.cos(yaw), math.sin(yaw)
+        return SimpleNamespace(pos=np.array([[x, y, 0.0]]), yaw=np.array([yaw]), vel_body=np.array([[vx, vy, 0.0]]),
+                               vel_world=np.array([[vx * c - vy * sn, vx * sn + vy * c, 0.0]]), yaw_rate=np.array([yaw_rate]),
+                               speed=np.array([math.hypot(vx, vy)]), wheel_omega=np.array([st[w0:w0 + 4]]),
+                               dt_control=self._dt)
+
+    def __call__(self, td: TensorDictBase) -> TensorDictBase:
+        if self.driver is None:
+            raise RuntimeError("ExpertPolicy.reset(ctx) must be called with the episode's track first")
+        car = self._car(td)
+        if self._first:  # locate the car from scratch once per episode
+            s, _ = self.driver.track.project(car.pos[0, :2])
+            self.driver.reset(float(s))
+            self._first = False
+        steer, throttle, brake = self.driver.act(car, 0)
+        td.set("action", torch.tensor([steer, throttle - brake], dtype=torch.float32).reshape(*td.batch_size, 2))
+        return td
+
+
+# --------------------------------------------------------------------------------------------
+# A sensor-only driver
+# --------------------------------------------------------------------------------------------
+class HeuristicPolicy(Policy):
+    """A rangefinder + state driver in the style of the TORCS SCR sample robot.
+
+    Steering: towards the track axis (``-k_angle * angle - k_pos * trackPos``) plus a pull
+    towards the beam that sees furthest ahead (front beams within +-45 deg). Speed: the target is
+    ``sqrt(2 a d)`` for the free distance ``d`` straight ahead (median of the three front beams),
+    capped; throttle/brake by a proportional controller. Off the track (beams read -1) it steers
+    back to the axis slowly.
+    """
+
+    name = "heuristic"
+
+    def __init__(self, k_angle: float = 1.6, k_pos: float = 0.35, k_beam: float = 0.9, decel: float = 6.0,
+                 v_min_kmh: float = 45.0, v_max_kmh: float = 220.0, max_steer_rad: float | None = None) -> None:
+        from torcsrl.envs.sensors import RANGEFINDER_ANGLES_DEG
+        from torcsrl.envs.vehicle import VehicleParams
+
+        self.spec = "heuristic"
+        self.obs_keys = ("rangefinder", "state")
+        self.env_overrides = {"sensors": ("rangefinder", "state")}
+        self.fingerprint = _code_fingerprint(HeuristicPolicy)
+        self.k_angle, self.k_pos, self.k_beam = k_angle, k_pos, k_beam
+        self.decel = decel
+        self.v_min, self.v_max = v_min_kmh / 3.6, v_max_kmh / 3.6
+        self.max_steer = max_steer_rad if max_steer_rad is not None else VehicleParams.load("default").max_steer
+        self.angles = np.radians(np.asarray(RANGEFINDER_ANGLES_DEG, dtype=float))
+        self.front = np.flatnonzero(np.abs(self.angles) <= np.radians(45.0) + 1e-9)
+        self.ahead = np.argsort(np.abs(self.angles))[:3]
+        self.obs_shapes = {"rangefinder": (len(self.angles),)}
+        self._ia, self._ip, self._iv = _state_slot("angle_rad"), _state_slot("trackPos"), _state_slot("speedX_kmh")
+
+    def __call__(self, td: TensorDictBase) -> TensorDictBase:
+        r = td.get("rangefinder").reshape(-1).numpy()
+        st = td.get("state").reshape(-1).numpy()
+        angle, tp, v = float(st[self._ia]), float(st[self._ip]), float(st[self._iv]) / 3.6
+        steer = -(self.k_angle * angle + self.k_pos * tp)
+        if (r >= 0).any():
+            f = r[self.front]
+            j = int(np.argmax(f))
+            steer += self.k_beam * float(self.angles[self.front][j]) * min(1.0, 60.0 / max(float(f[j]), 1.0))
+            d = float(np.median(r[self.ahead]))
+            v_target = min(self.v_max, max(self.v_min, math.sqrt(2.0 * self.decel * max(d - 10.0, 0.0))))
+        else:
+            v_target = self.v_min
+        steer = max(-1.0, min(1.0, steer / max(self.max_steer, 1e-3) * 0.5))
+        err = v_target - v
+        tb = max(-1.0, min(1.0, 0.25 * err + (0.1 if err > 0 else 0.0)))
+        td.set("action", torch.tensor([steer, tb], dtype=torch.float32).reshape(*td.batch_size, 2))
+        return td
+
+
+# --------------------------------------------------------------------------------------------
+# Random actions
+# --------------------------------------------------------------------------------------------
+class RandomPolicy(Policy):
+    """Uniform random actions in [-1, 1], from a generator seeded at every episode start."""
+
+    name = "random"
+
+    def __init__(self, action_dim: int = 2) -> None:
+        self.spec = "random"
+        self.obs_keys = ()
+        self.env_overrides = {}
+        self.action_dim = int(action_dim)
+        self.fingerprint = _code_fingerprint(RandomPolicy)
+        self.gen = torch.Generator().manual_seed(0)
+
+    def reset(self, ctx: EpisodeContext) -> None:
+        self.gen.manual_seed(int(ctx.seed) & ((1 << 63) - 1))
+
+    def __call__(self, td: TensorDictBase) -> TensorDictBase:
+        a = torch.rand(*td.batch_size, self.action_dim, generator=self.gen) * 2.0 - 1.0
+        td.set("action", a)
+        return td
+
+
+# --------------------------------------------------------------------------------------------
+def load_policy(spec: str | Path | Policy) -> Policy:
+    """The :class:`Policy` for ``spec`` (see the module docstring); :class:`PolicyError` (one line)
+    for a missing, corrupt or unusable checkpoint."""
+    if isinstance(spec, Policy):
+        return spec
+    s = str(spec)
+    if s == "expert":
+        return ExpertPolicy()
+    if s == "heuristic":
+        return HeuristicPolicy()
+    if s == "random":
+        return RandomPolicy()
+    if s == "reference":
+        if not REFERENCE_POLICY.is_file():
+            raise PolicyError(f"the reference driver {REFERENCE_POLICY} is not shipped yet; pass a checkpoint path, 'expert' or 'heuristic'")
+        return CheckpointPolicy(REFERENCE_POLICY, name="reference")
+    p = Path(s)
+    if not p.exists():
+        raise PolicyError(f"policy {s!r} is neither a checkpoint file that exists nor one of {', '.join(BUILTIN_POLICIES)}")
+    if p.is_dir():
+        from torcsrl.utils.checkpoint import latest_checkpoint
+
+        latest = latest_checkpoint(p / "checkpoints") or latest_checkpoint(p)
+        if latest is None:
+            raise PolicyError(f"policy {s!r} is a folder without checkpoints (ckpt_*.pt in it or in its checkpoints/)")
+        return CheckpointPolicy(latest, name=p.name)
+    return CheckpointPolicy(p)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m torcsrl.policies", description="Inspect or export evaluation policies.")
+    sub = parser.add_subparsers(dest="cmd", required=True)
+    e = sub.add_parser("export", help="write a policy file (actor weights + config) from a training checkpoint")
+    e.add_argument("checkpoint")
+    e.add_argument("out")
+    i = sub.add_parser("info", help="print what a policy spec loads")
+    i.add_argument("spec")
+    args = parser.parse_args(argv)
+    try:
+        if args.cmd == "export":
+            out = export_policy(args.checkpoint, args.out)
+            print(f"wrote {out} ({out.stat().st_size / 1024:.0f} KiB)")
+        else:
+            print(load_policy(args.spec).describe())
+    except PolicyError as err:
+        print(f"torcsrl.policies: error: {err}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
