@@ -191,6 +191,19 @@ def test_replay_stores_each_observation_once_and_rebuilds_next_observations():
     assert batch.shape == (8,) and set(batch["index"].tolist()) <= set(((torch.arange(12) + small.written - 12) % small.rows).tolist())
 
 
+def test_replay_pixels_are_stored_once():
+    from torcsrl.utils.replay import ReplayBuffer
+
+    torch.manual_seed(0)
+    env = build_base_env("toy", {"seed": 0, "num_cars": 2, "max_steps": 5, "sensors": ("state", "pixels"), "camera": {"height": 8, "width": 8}})
+    ro = env.rollout(12, break_when_any_done=False)
+    rb = ReplayBuffer(100, 4, ["state", "pixels"], streams=2)
+    rb.extend(ro)
+    _same(rb[:], _flat(ro), keys=("state", "pixels", ("next", "state"), ("next", "pixels"), ("next", "truncated")))
+    assert rb.bytes_per_transition == 3 * 8 * 8 + 4 * 6 + 4 * 2 + 4 + 3 + 4  # one frame per row
+    assert rb.finals_written == 4  # one final frame per finished episode (2 cars x 2 truncations)
+
+
 def test_replay_n_step_returns_equal_torchrl_multistep():
     from torchrl.envs import MultiStepTransform
 

@@ -12,8 +12,20 @@ added here (worker ``i`` of a multi-process collector gets ``seed + 1000 (i + 1)
 
 Resuming (``checkpoint.resume=latest`` or a path) restores networks, targets, optimisers,
 counters, every RNG (python, numpy, torch, the envs' generators), the exploration state, the
-collector's in-flight episode and the replay buffer: on CPU with the in-process collector the
-resumed run continues exactly as the uninterrupted one would have.
+collector's in-flight episode and the replay buffer: on CPU with the in-process collector (and an
+env with ``get_sim_state``, like the toy env) the resumed run continues exactly as the
+uninterrupted one would have.
+
+Speed (``benchmarks/train_throughput.py``; the loop's hot path allocates little and reads no
+config): the in-process collector is :class:`~torcsrl.utils.collector.StepCollector` (TorchRL's
+``Collector`` semantics without its per-step bookkeeping; ``MultiSyncCollector`` for worker
+processes), the replay memory :class:`~torcsrl.utils.replay.ReplayBuffer` (each observation
+stored once, n-step returns formed when sampling, index gathers), the update
+``torcsrl.agents._build.update`` (fused twin critics, detached critic in the actor loss, fused
+Adam and one ``_foreach_lerp_`` for the targets, no ``.item()``: metrics are read when logged).
+With ``frames_per_batch`` F and ``utd_ratio`` U, each batch of F frames is followed by F x U
+gradient steps: F = one env step (the default) updates after every step, like SB3 / CleanRL;
+a larger F acts F frames with the same weights (policy lag < F steps) for the same data per update.
 """
 
 from __future__ import annotations
@@ -166,10 +178,11 @@ def make_buffer(cfg: DictConfig, run_dir: Path) -> ReplayBuffer:
 def make_collector(cfg: DictConfig, env: EnvBase, policy) -> StepCollector | MultiSyncCollector:
     """In-process :class:`StepCollector` (num_workers = 0) or TorchRL's MultiSyncCollector over ``num_workers`` env processes."""
     c = cfg.collector
+    fpb = int(c.frames_per_batch or max(1, env.batch_size.numel()))  # null: one env step of every car
     if int(c.num_workers) == 0:
-        return StepCollector(env, policy, int(c.frames_per_batch), int(c.init_random_frames))
+        return StepCollector(env, policy, fpb, int(c.init_random_frames))
     fns = [functools.partial(make_train_env, cfg, i) for i in range(int(c.num_workers))]
-    return MultiSyncCollector(fns, policy, frames_per_batch=int(c.frames_per_batch) * int(c.num_workers), total_frames=-1,
+    return MultiSyncCollector(fns, policy, frames_per_batch=fpb * int(c.num_workers), total_frames=-1,
                               init_random_frames=int(c.init_random_frames), exploration_type=ExplorationType.RANDOM)
 
 
@@ -432,9 +445,12 @@ def _resume(cfg, ckpt_dir, meta, loss, optim, policy, collector, env, eval_env, 
     for k, o in optim.items():
         o.load_state_dict(ck["optim"][k])
     policy.load_state_dict(ck["policy"])
-    if ck["collector"]:
+    if ck["collector"] and ck["collector"]["env"] is not None:
         collector.load_state_dict(ck["collector"]["state"])
         _set_sim_state(env, ck["collector"]["env"])
+    elif ck["collector"]:  # the env cannot restore its simulation: keep its fresh episode, not the checkpoint's observation
+        collector.load_state_dict(ck["collector"]["state"], carrier=False)
+        print("[torcsrl] this env has no get_sim_state: the in-flight episode restarts (exact resume needs it)", file=sys.stderr)
     else:
         print("[torcsrl] resuming a multi-process collector: worker episodes restart (exact resume needs num_workers=0)", file=sys.stderr)
     _set_sim_state(eval_env, ck["eval_env"])

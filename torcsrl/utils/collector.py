@@ -100,6 +100,9 @@ class StepCollector:
     def state_dict(self) -> dict:
         return {"frames": self.frames, "carrier": self._carrier.to_dict()}
 
-    def load_state_dict(self, state: dict) -> None:
+    def load_state_dict(self, state: dict, carrier: bool = True) -> None:
+        """Restore the frame count and (``carrier``) the in-flight tensordict — only meaningful together
+        with the env's own simulation state."""
         self.frames = int(state["frames"])
-        self._carrier.update(TensorDict.from_dict(state["carrier"], batch_size=self.env.batch_size))
+        if carrier:
+            self._carrier.update(TensorDict.from_dict(state["carrier"], batch_size=self.env.batch_size))
