@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import statistics
 import sys
 import tempfile
@@ -56,6 +57,7 @@ def ours(algo: str, threads: int, steps: int, warmup: int, extra: list[str]) -> 
     train(cfg)
     wall = [(s, v) for s, v in read_csv_metric(Path(run), "time/elapsed_s") if s >= warmup + every]
     cpu = [(s, v) for s, v in read_csv_metric(Path(run), "time/cpu_s") if s >= warmup + every]
+    shutil.rmtree(run, ignore_errors=True)
     return (wall[-1][0] - wall[0][0]) / (wall[-1][1] - wall[0][1]), (cpu[-1][0] - cpu[0][0]) / (cpu[-1][1] - cpu[0][1])
 
 

@@ -445,6 +445,8 @@ def _resume(cfg, ckpt_dir, meta, loss, optim, policy, collector, env, eval_env, 
     for k, o in optim.items():
         o.load_state_dict(ck["optim"][k])
     policy.load_state_dict(ck["policy"])
+    if ck["collector"] and "carrier" in ck["collector"]:  # written by TorchRL's Collector (before StepCollector)
+        ck["collector"]["state"] = {"frames": ck["collector"]["state"]["frames"], "carrier": ck["collector"]["carrier"]}
     if ck["collector"] and ck["collector"]["env"] is not None:
         collector.load_state_dict(ck["collector"]["state"])
         _set_sim_state(env, ck["collector"]["env"])
@@ -455,7 +457,10 @@ def _resume(cfg, ckpt_dir, meta, loss, optim, policy, collector, env, eval_env, 
         print("[torcsrl] resuming a multi-process collector: worker episodes restart (exact resume needs num_workers=0)", file=sys.stderr)
     _set_sim_state(eval_env, ck["eval_env"])
     if ck["buffer_dir"]:
-        buffer.loads(str(path.parent / ck["buffer_dir"]))
+        try:
+            buffer.loads(str(path.parent / ck["buffer_dir"]))
+        except ValueError as err:  # e.g. a TorchRL-format buffer from before torcsrl.utils.replay
+            raise CheckpointError(f"checkpoint {path}: its replay buffer cannot be restored ({err})") from None
     if ck["threads"] != torch.get_num_threads():
         print(f"[torcsrl] using the checkpoint's {ck['threads']} threads (float results depend on it)", file=sys.stderr)
         torch.set_num_threads(int(ck["threads"]))

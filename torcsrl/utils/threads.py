@@ -3,7 +3,9 @@
 Small networks (256x256, batch 256) gain little past a few threads, and on a small box the
 learner's threads compete with env worker processes and with anything else running: measured on
 the project's 2-core machine, 2 learner threads ran 1.8x faster than 1 when idle but collapsed
-below 1 thread's speed as soon as another process was busy. The policy:
+below 1 thread's speed as soon as another process was busy (the whole TD3 loop on Pendulum,
+``benchmarks/train_throughput.py``: 1.4-1.5x with the second core free, 8-100 steps/s instead of
+~80 with other jobs running). The policy:
 
 * ``threads: <int>`` is taken as given;
 * ``threads: auto`` -> ``cores - env_workers - 1`` (one core left for the collector/OS),
