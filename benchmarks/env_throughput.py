@@ -46,7 +46,7 @@ def raw_physics(n_cars: int, steps: int) -> float:
     cid = p.connect(p.DIRECT)
     make_ground(cid)
     fleet = CarFleet(cid, n_cars)
-    fleet.reset(np.arange(n_cars), np.zeros((n_cars, 2)), np.zeros(n_cars), 20.0)
+    fleet.reset(np.arange(n_cars), np.zeros((n_cars, 2)), np.zeros(n_cars), 20.0)  # overlapping, as on a grid
     steer, thr, brk = np.zeros(n_cars), np.full(n_cars, 0.3), np.zeros(n_cars)
     i = [0]
 
@@ -54,7 +54,7 @@ def raw_physics(n_cars: int, steps: int) -> float:
         fleet.step(steer, thr, brk)
         i[0] += 1
         if i[0] % 500 == 0:  # keep the car on the flat ground near the origin, as the env does
-            fleet.reset(np.arange(n_cars), np.zeros((n_cars, 2)), np.zeros(n_cars), 20.0)
+            fleet.reset(np.arange(n_cars), np.zeros((n_cars, 2)), np.zeros(n_cars), 20.0)  # overlapping, as on a grid
         return False
 
     r = _rate(step, steps) * n_cars

@@ -412,6 +412,32 @@ def test_backends_agree_and_are_deterministic():
     assert np.abs(a - b).max() > 1.0  # the options do change the dynamics
 
 
+@pytest.mark.parametrize("backend", ["numpy", "python"])
+def test_closed_form_ground_matches_pybullet_ray_test(backend):
+    """ground="plane" (closed-form suspension rays) gives pybullet's ray-test trajectory, also for
+    cars that overlap on one spot (where pybullet's ray test gets ~10x dearer)."""
+    pos = {}
+    for ground in ("plane", "raycast"):
+        cid = p.connect(p.DIRECT)
+        try:
+            make_ground(cid)
+            fleet = CarFleet(cid, 3, ground=ground, backend=backend)
+            fleet.reset(np.arange(3), np.array([[0.0, 0.0], [0.0, 0.0], [30.0, 5.0]]), np.zeros(3), 20.0)
+            for t in range(300):
+                fleet.step(np.array([math.sin(t / 30), -0.5, 0.2]), np.array([0.8, 0.6, 1.0]),
+                           np.array([0.0, 0.3 if t % 100 < 20 else 0.0, 0.0]))
+            pos[ground] = fleet.pos.copy()
+        finally:
+            p.disconnect(cid)
+    assert np.abs(pos["plane"] - pos["raycast"]).max() < 1e-6
+    assert np.abs(pos["plane"][2, :2] - [30.0, 5.0]).max() > 10.0  # the cars did drive
+
+
+def test_unknown_ground_model_is_rejected(world):
+    with pytest.raises(ValueError, match="ground must be one of plane, raycast"):
+        world.fleet(1, ground="terrain")
+
+
 if __name__ == "__main__":  # print the validation figures
     print("braking from 100 km/h (ABS):")
     for s in ("asphalt", "wet", "dirt", "gravel", "ice", "grass"):

@@ -244,6 +244,11 @@ class RaceCore:
     def sanitize(self, action) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(steer, throttle, brake) ``[N]`` from an action ``[N, A]``; see :class:`RaceEnv`."""
         a = np.asarray(action, dtype=np.float64)
+        if self.n == 1 and self.action_dim == 2 and a.size == 2:  # the common case, in floats
+            st, tb = a.ravel().tolist()
+            if math.isfinite(st) and math.isfinite(tb):
+                st, tb = min(max(st, -1.0), 1.0), min(max(tb, -1.0), 1.0)
+                return np.array([st]), np.array([max(tb, 0.0)]), np.array([max(-tb, 0.0)])
         if a.shape != (self.n, self.action_dim):
             if a.size == self.n * self.action_dim:
                 a = a.reshape(self.n, self.action_dim)

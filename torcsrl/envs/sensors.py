@@ -19,6 +19,8 @@ speed into about [−1, 1]. :func:`normalize_transform` builds the TorchRL trans
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pybullet as p
 
@@ -110,11 +112,12 @@ class Rangefinder:
         if not range_m > 0:
             raise ValueError(f"rangefinder range must be positive [m], got {range_m}")
         self.angles = a
+        self._angle_list = a.tolist()
         self.range_m = float(range_m)
         self.height_m = float(height_m)
         self.client = p.connect(p.DIRECT)
         self._bodies: dict[int, int] = {}  # track slot -> body
-        self._offsets: dict[int, np.ndarray] = {}
+        self._offsets: dict[int, tuple[float, float]] = {}  # slot -> wall offset [m]
 
     @property
     def n_beams(self) -> int:
@@ -138,26 +141,32 @@ class Rangefinder:
                                        indices=np.concatenate(tris).astype(int).tolist(),
                                        flags=p.GEOM_FORCE_CONCAVE_TRIMESH, physicsClientId=self.client)
         self._bodies[slot] = p.createMultiBody(0, shape, physicsClientId=self.client)
-        self._offsets[slot] = offset
+        self._offsets[slot] = (float(offset[0]), float(offset[1]))
 
     def read(self, slots: np.ndarray, xy: np.ndarray, yaw: np.ndarray, on_track: np.ndarray) -> np.ndarray:
         """Beam distances ``[N, B]`` float32 [m] for cars at ``xy [N,2]`` (track frame), ``yaw [N]``."""
-        n = len(xy)
-        out = np.full((n, self.n_beams), OFF_TRACK_READING, dtype=np.float32)
+        n, b = len(xy), self.n_beams
+        out = np.full((n, b), OFF_TRACK_READING, dtype=np.float32)
         idx = np.flatnonzero(on_track)
         if len(idx) == 0:
             return out
-        origin = xy[idx] + np.stack([self._offsets[int(s)] for s in slots[idx]])
-        ang = yaw[idx, None] + self.angles[None, :]
-        k = len(idx) * self.n_beams
-        start = np.zeros((k, 3))
-        start[:, :2] = np.repeat(origin, self.n_beams, axis=0)
-        end = start.copy()
-        end[:, 0] += self.range_m * np.cos(ang).ravel()
-        end[:, 1] += self.range_m * np.sin(ang).ravel()
+        if n == 1:  # one car: plain floats (numpy's per-call overhead dominates at this size)
+            ox, oy = self._offsets[int(slots[0])]
+            x0, y0, psi, r = float(xy[0, 0]) + ox, float(xy[0, 1]) + oy, float(yaw[0]), self.range_m
+            start = [(x0, y0, 0.0)] * b
+            end = [(x0 + r * math.cos(psi + a), y0 + r * math.sin(psi + a), 0.0) for a in self._angle_list]
+        else:
+            origin = xy[idx] + np.stack([self._offsets[int(s)] for s in slots[idx]])
+            ang = yaw[idx, None] + self.angles[None, :]
+            k = len(idx) * b
+            start = np.zeros((k, 3))
+            start[:, :2] = np.repeat(origin, b, axis=0)
+            end = start.copy()
+            end[:, 0] += self.range_m * np.cos(ang).ravel()
+            end[:, 1] += self.range_m * np.sin(ang).ravel()
         hits = p.rayTestBatch(start, end, physicsClientId=self.client)
-        frac = np.fromiter((h[2] for h in hits), dtype=np.float64, count=k)
-        out[idx] = (frac * self.range_m).reshape(len(idx), self.n_beams)
+        frac = np.fromiter((h[2] for h in hits), dtype=np.float64, count=len(idx) * b)
+        out[idx] = (frac * self.range_m).reshape(len(idx), b)
         return out
 
     def close(self) -> None:
