@@ -150,8 +150,16 @@ def _env_seed(base: EnvBase, default: int) -> int:
 
 
 def make_eval_env(cfg: DictConfig) -> EnvBase:
-    """One car, the validation overrides, its own seed; no transforms (rewards are summed here)."""
-    override = dict(OmegaConf.to_container(cfg.eval.env, resolve=True) or {})
+    """One car, the validation overrides, its own seed; no transforms (rewards are summed here).
+
+    Validation is a time trial from the grid (Summers's protocol) even when training spawns cars at
+    random points (``env.start=random``, ``env.spawn_jitter``); ``eval.env`` overrides that too."""
+    override = {}
+    if cfg.env.get("start") is not None:
+        override["start"] = "grid"
+    if cfg.env.get("spawn_jitter") is not None:
+        override["spawn_jitter"] = [0.0, 0.0]
+    override.update(OmegaConf.to_container(cfg.eval.env, resolve=True) or {})
     override.update(num_cars=1, seed=int(cfg.eval.seed), device="cpu", lap_limit=cfg.eval.lap_limit, max_steps=int(cfg.eval.max_steps))
     base = build_base_env(cfg.env.name, env_kwargs(cfg.env, **override))
     ts = observation_transforms(cfg, base)

@@ -366,6 +366,23 @@ def test_scalar_and_vectorised_locate_agree():
     core.close()
 
 
+def test_laps_count_full_laps_driven_and_times_run_line_to_line():
+    """After a random start, crossing the line is not a lap: ``lap`` counts full lengths driven;
+    lap times run from one line crossing to the next (the partial first lap is untimed)."""
+    core = RaceCore(track="oval", start="random")
+    core.reset()
+    L = core.car_tracks[0].length
+    core.s0[:] = L - 50.0  # 50 m before the line
+    for dist, t, lap, last in ((49.0, 2.0, 0, 0.0), (51.0, 2.5, 0, 0.0), (L + 10.0, 40.0, 1, 0.0),
+                               (L + 51.0, 42.0, 1, 39.5), (2 * L + 1.0, 60.0, 2, 39.5)):
+        core.dist_raced[:] = dist
+        core.time[:] = t
+        core._laps()
+        assert int(core.lap[0]) == lap, (dist, core.lap)
+        assert float(core.last_lap_time[0]) == pytest.approx(last), (dist, core.last_lap_time)
+    core.close()
+
+
 def test_memory_stays_flat_over_resets_and_steps():
     import importlib.util
     import pathlib

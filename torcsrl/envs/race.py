@@ -161,7 +161,8 @@ class RaceCore:
         self.dist_raced = np.zeros(n)
         self.best_dist = np.zeros(n)
         self.best_dist_time = np.zeros(n)
-        self.lap = np.zeros(n, dtype=np.int64)
+        self.lap = np.zeros(n, dtype=np.int64)  # full laps driven (distRaced // length)
+        self.crossings = np.zeros(n, dtype=np.int64)  # start-line crossings (they time the laps)
         self.time = np.zeros(n)
         self.lap_start_time = np.zeros(n)
         self.lap_timed = np.zeros(n, dtype=bool)  # the running lap started on the line
@@ -232,6 +233,7 @@ class RaceCore:
                      "best_lap_time", "offtrack_time"):
             getattr(self, name)[idx] = 0.0
         self.lap[idx] = 0
+        self.crossings[idx] = 0
         self.steps[idx] = 0
         self.lap_timed[idx] = self.start == "grid"
         self.finished[idx] = False
@@ -355,9 +357,12 @@ class RaceCore:
         return ids
 
     def _laps(self) -> None:
+        """``lap``: full laps driven since the start (``distRaced // length``; from the grid, the
+        line crossings). Lap *times* run from one start-line crossing to the next, so after a
+        random start the first, partial lap is never timed."""
         lengths = np.array([t.length for t in self.car_tracks]) if self.n > 1 else self.car_tracks[0].length
-        laps = np.floor((self.s0 + self.dist_raced) / lengths).astype(np.int64)
-        done = laps > self.lap
+        cross = np.floor((self.s0 + self.dist_raced) / lengths).astype(np.int64)
+        done = cross > self.crossings
         if done.any():
             i = np.flatnonzero(done)
             lap_time = self.time[i] - self.lap_start_time[i]
@@ -367,7 +372,8 @@ class RaceCore:
             self.best_lap_time[i] = np.where(timed & ((best == 0) | (lap_time < best)), lap_time, best)
             self.lap_start_time[i] = self.time[i]
             self.lap_timed[i] = True
-        self.lap = np.maximum(self.lap, laps)
+            self.crossings = np.maximum(self.crossings, cross)
+        self.lap = np.maximum(self.lap, np.floor(self.dist_raced / lengths).astype(np.int64))
 
     def _observe(self) -> None:
         obs = {}
