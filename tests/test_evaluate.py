@@ -27,7 +27,8 @@ def _strict_json(path: Path):
     return json.loads(Path(path).read_text(), parse_constant=bad)
 
 
-def make_checkpoint(path: Path, obs_layout: dict[str, int], training_format: bool = False) -> Path:
+def make_checkpoint(path: Path, obs_layout: dict[str, int], training_format: bool = False,
+                    overrides: tuple[str, ...] = ()) -> Path:
     """A torcsrl checkpoint holding a freshly initialised TD3 actor for ``obs_layout`` ({key: size})."""
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
@@ -37,7 +38,7 @@ def make_checkpoint(path: Path, obs_layout: dict[str, int], training_format: boo
     from torcsrl.utils.checkpoint import save_checkpoint
 
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-        cfg = compose("train", overrides=["debug=smoke", "env.camera=null"])
+        cfg = compose("train", overrides=["debug=smoke", "env.camera=null", *overrides])
     spec = Composite({k: Unbounded((n,)) for k, n in obs_layout.items()}, shape=())
     env = type("FakeEnv", (), {"observation_spec": spec, "action_spec": Bounded(-1.0, 1.0, (2,))})()
     torch.manual_seed(0)
@@ -111,6 +112,18 @@ def test_checkpoint_policy_loads_both_formats_and_drives(tmp_path):
     res = evaluate(slim, "oval", laps=1, out_dir=None, max_steps=20, expert_laps=None, degradation="rangefinder.noise@2",
                    verbose=False)
     assert res["episodes"][0]["steps"] <= 20 and res["episodes"][0]["corruption"] == "rangefinder.noise"
+
+
+def test_checkpoint_policy_drives_at_the_control_rate_it_was_trained_at(tmp_path):
+    """A policy trained at 10 Hz is evaluated at 10 Hz (its control problem travels with it)."""
+    path = make_checkpoint(tmp_path / "p10.pt", {"rangefinder": 19, "state": 11},
+                           overrides=("env.control_hz=10", "env.substeps=20"))
+    pol = load_policy(str(path))
+    assert pol.env_overrides["control_hz"] == 10 and pol.env_overrides["substeps"] == 20
+    res = evaluate(pol, "oval", laps=1, out_dir=None, max_steps=10, expert_laps=None, verbose=False)
+    ep = res["episodes"][0]
+    assert ep["steps"] == 10 or ep["time_s"] < 1.0 + 1e-9
+    assert ep["time_s"] == pytest.approx(ep["steps"] * 0.1)
 
 
 def test_bad_inputs_fail_with_one_line_before_any_work(tmp_path, capsys):

@@ -297,7 +297,8 @@ def run_cell(policy: Policy, track: str, surface: str | None = None, degradation
     deg = parse_degradation(degradation)
     geom = _tracks.load(track, surface=surface)
     surface_name = surface or geom.default_surface
-    dt = 1.0 / float((env_kwargs or {}).get("control_hz", 50.0))
+    hz = {**dict(env_kwargs or {}), **policy.env_overrides}.get("control_hz", 50.0)
+    dt = 1.0 / float(hz)
     steps = int(max_steps) if max_steps else default_max_steps(geom.length, laps, dt)
     env, transform = make_cell_env(policy, track, surface, deg, laps, steps, env_kwargs)
     core = _base(env).core

@@ -62,6 +62,10 @@ __all__ = [
     "file_fingerprint",
 ]
 
+#: Env settings a trained policy is bound to (they define its control problem); evaluation uses the
+#: checkpoint's values: control rate, physics substeps, car, rangefinder beams.
+DYNAMICS_KEYS = ("control_hz", "substeps", "vehicle", "vehicle_overrides", "rangefinder_angles_deg", "rangefinder_range_m")
+
 #: Where the shipped reference driver lives (a policy file written by :func:`export_policy`).
 REFERENCE_POLICY = Path(__file__).resolve().parent / "assets" / "reference_td3.pt"
 #: Names of the built-in policies (anything else is a checkpoint path).
@@ -240,6 +244,10 @@ class CheckpointPolicy(Policy):
             self.env_overrides["camera"] = OmegaConf.to_container(camera, resolve=True)
         if action_dim == 3:
             self.env_overrides["action_mode"] = "separate"
+        for k in DYNAMICS_KEYS:  # the control problem the policy was trained on (rate, car, beams)
+            v = cfg.env.get(k) if env_name == "race" else None
+            if v is not None:
+                self.env_overrides[k] = OmegaConf.to_container(v, resolve=True) if OmegaConf.is_config(v) else v
         self.fingerprint = file_fingerprint(path)
         self.config_yaml = ck["config"]
         self.meta = dict(meta)
