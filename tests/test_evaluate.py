@@ -126,6 +126,24 @@ def test_checkpoint_policy_drives_at_the_control_rate_it_was_trained_at(tmp_path
     assert ep["time_s"] == pytest.approx(ep["steps"] * 0.1)
 
 
+def test_checkpoint_policy_scales_observations_as_training_did(tmp_path):
+    """env.normalize: the actor saw sensor readings divided by sensors.obs_scale; so must evaluation."""
+    from tensordict import TensorDict
+
+    from torcsrl.envs.sensors import obs_scale
+
+    layout = {"rangefinder": 19, "state": 11}
+    on = load_policy(str(make_checkpoint(tmp_path / "on.pt", layout)))
+    off = load_policy(str(make_checkpoint(tmp_path / "off.pt", layout, overrides=("env.normalize=false",))))
+    rf, st = torch.rand(19) * 150, torch.randn(11) * 50
+    td = TensorDict({"rangefinder": rf, "state": st}, [])
+    scaled = on.actor(rf / torch.as_tensor(obs_scale("rangefinder")), st / torch.as_tensor(obs_scale("state")))
+    assert torch.allclose(on(td.clone())["action"], scaled)
+    assert torch.allclose(on.as_module()(td.clone())["action"], scaled)
+    assert torch.allclose(off(td.clone())["action"], off.actor(rf, st))
+    assert not torch.allclose(on.actor(rf, st), scaled)  # the scaling matters
+
+
 def test_bad_inputs_fail_with_one_line_before_any_work(tmp_path, capsys):
     bad_layout = make_checkpoint(tmp_path / "toy.pt", {"rangefinder": 19, "state": 6})
     corrupt = tmp_path / "corrupt.pt"

@@ -248,19 +248,33 @@ class CheckpointPolicy(Policy):
             v = cfg.env.get(k) if env_name == "race" else None
             if v is not None:
                 self.env_overrides[k] = OmegaConf.to_container(v, resolve=True) if OmegaConf.is_config(v) else v
+        # The observation scaling of training (torcsrl.train.observation_transforms: after any
+        # degradation, rangefinder and state divided by sensors.obs_scale when env.normalize).
+        self.obs_divisors: dict[str, torch.Tensor] = {}
+        if cfg.env.get("normalize", True):
+            from torcsrl.envs.sensors import obs_scale
+
+            for k in ("rangefinder", "state"):
+                if k in self.obs_shapes:
+                    self.obs_divisors[k] = torch.as_tensor(obs_scale(k, int(self.obs_shapes[k][-1])))
         self.fingerprint = file_fingerprint(path)
         self.config_yaml = ck["config"]
         self.meta = dict(meta)
 
     def as_module(self):
-        """The actor as a ``TensorDictModule`` (obs keys -> ``"action"``)."""
+        """The policy as a ``TensorDictModule`` over the env's observations (obs keys -> ``"action"``;
+        the training's observation scaling included)."""
         from tensordict.nn import TensorDictModule
 
-        return TensorDictModule(self.actor, in_keys=list(self.obs_keys), out_keys=["action"])
+        return TensorDictModule(self._act, in_keys=list(self.obs_keys), out_keys=["action"])
+
+    def _act(self, *obs: torch.Tensor) -> torch.Tensor:
+        div = self.obs_divisors
+        return self.actor(*(x / div[k] if k in div else x for k, x in zip(self.obs_keys, obs)))
 
     @torch.no_grad()
     def __call__(self, td: TensorDictBase) -> TensorDictBase:
-        td.set("action", self.actor(*(td.get(k) for k in self.obs_keys)))
+        td.set("action", self._act(*(td.get(k) for k in self.obs_keys)))
         return td
 
 
