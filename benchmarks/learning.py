@@ -28,7 +28,8 @@ from hydra import compose, initialize_config_dir  # noqa: E402
 from torcsrl.train import train  # noqa: E402
 
 
-def run_seed(env: str, algo: str, seed: int, budget: int, chunk: int, overrides: list[str], out: Path) -> dict:
+def run_seed(env: str, algo: str, seed: int, budget: int, chunk: int, overrides: list[str], out: Path,
+             eval_max_steps: int = 10_000) -> dict:
     run_dir = out / f"{algo}_{env}_seed{seed}"
     found = {"first_clean_lap": None, "clean_10_laps": None}
     wall = 0.0
@@ -38,7 +39,7 @@ def run_seed(env: str, algo: str, seed: int, budget: int, chunk: int, overrides:
         with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
             cfg = compose("train", overrides=[
                 f"algo={algo}", f"env={env}", f"seed={seed}", f"run_dir={run_dir}", f"total_frames={target}",
-                "eval.every_episodes=1000000000", "eval.lap_limit=10", f"checkpoint.every_frames={chunk}", "progress=false",
+                "eval.every_episodes=1000000000", "eval.lap_limit=10", f"eval.max_steps={eval_max_steps}", f"checkpoint.every_frames={chunk}", "progress=false",
                 *(["checkpoint.resume=latest"] if frames else []), *overrides,
             ])
         t = time.perf_counter()
@@ -76,11 +77,13 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--budget", type=int, default=1_000_000, help="env steps per seed at most")
     ap.add_argument("--chunk", type=int, default=10_000, help="env steps between milestone checks")
+    ap.add_argument("--eval-max-steps", type=int, default=10_000,
+                    help="step cap of the 10-lap validation run (10 laps of the oval at 10 Hz take ~5,000 steps)")
     ap.add_argument("--out", default=None, help="folder for the runs (default: a temporary folder)")
     ap.add_argument("overrides", nargs="*", help="extra Hydra overrides (after --)")
     a = ap.parse_args()
     out = Path(a.out or tempfile.mkdtemp(prefix="torcsrl_learning_"))
-    rows = [run_seed(a.env, a.algo, s, a.budget, a.chunk, a.overrides, out) for s in a.seeds]
+    rows = [run_seed(a.env, a.algo, s, a.budget, a.chunk, a.overrides, out, a.eval_max_steps) for s in a.seeds]
 
     def fmt(m):
         return "not reached" if m is None else f"{m[0]:>9} steps {m[1]:8.1f} s"

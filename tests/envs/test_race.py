@@ -383,6 +383,36 @@ def test_laps_count_full_laps_driven_and_times_run_line_to_line():
     core.close()
 
 
+def test_one_car_float_bookkeeping_matches_the_vectorised_rules():
+    """RaceCore keeps one car's books in floats (_book_one); the same drive in a 2-car core (the
+    array rules) books the same rewards, terms, terminations and laps, step for step."""
+    one = RaceCore(track="hairpins", num_cars=1, reward="lau", reward_scale=0.05, max_steps=150, no_progress_s=2.0)
+    two = RaceCore(track="hairpins", num_cars=2, reward="lau", reward_scale=0.05, max_steps=150, no_progress_s=2.0)
+    one.reset()
+    two.reset()
+    rng = np.random.default_rng(3)
+    reasons = set()
+    base = np.array([0.9, 1.0])  # per episode: a steady steer and throttle, plus noise
+    for _ in range(600):
+        a = np.clip(base + rng.normal(0.0, 0.1, 2), -1.0, 1.0)
+        one.step(a[None])
+        two.step(np.stack([a, a]))
+        assert np.allclose(one.terms[:, 0], two.terms[:, 0], atol=1e-9)
+        assert abs(one.rewards[0] - two.rewards[0]) < 1e-9
+        for k in ("terminated", "truncated", "finished", "reason", "lap", "steps"):
+            assert getattr(one, k)[0] == getattr(two, k)[0], k
+        for k in ("time", "dist_raced", "best_dist", "best_dist_time", "offtrack_time"):
+            assert abs(getattr(one, k)[0] - getattr(two, k)[0]) < 1e-9, k
+        if one.terminated[0] or one.truncated[0]:
+            reasons.add(int(one.reason[0]) if one.terminated[0] else -1)
+            base = np.array([rng.uniform(-1.0, 1.0), rng.uniform(-0.5, 1.0)])
+            one.reset()
+            two.reset()
+    assert len(reasons) >= 2, reasons  # more than one way to end an episode was exercised
+    one.close()
+    two.close()
+
+
 def test_memory_stays_flat_over_resets_and_steps():
     import importlib.util
     import pathlib

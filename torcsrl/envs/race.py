@@ -272,6 +272,10 @@ class RaceCore:
         self.fleet.step(steer, throttle, brake)
         s_old = self.s.copy()
         self._locate()
+        if self.n == 1:
+            self._book_one(float(s_old[0]))
+            self._observe()
+            return
         progress = np.array([t.wrap_delta(self.s[i], s_old[i]) for i, t in enumerate(self.car_tracks)]) if self.n > 1 \
             else self.car_tracks[0].wrap_delta(self.s, s_old)
         self.time += self.dt
@@ -298,6 +302,50 @@ class RaceCore:
         self.terminated = terminated
         self.truncated = ~terminated & ((self.steps >= self.max_steps) | self.finished)
         self._observe()
+
+    def _book_one(self, s_old: float) -> None:
+        """One car: the bookkeeping of :meth:`step` in plain floats (the same rules, in the same
+        order; numpy's per-call overhead dominates arrays of one). Fields that :meth:`step`
+        replaces by new arrays are replaced here too, so no caller's reference is overwritten."""
+        t = self.car_tracks[0]
+        dt = self.dt
+        half = 0.5 * t.length
+        progress = (float(self.s[0]) - s_old + half) % t.length - half
+        now = float(self.time[0]) + dt
+        self.time[0] = now
+        self.steps[0] += 1
+        dist = float(self.dist_raced[0]) + progress
+        self.dist_raced[0] = dist
+        self._laps()
+        best, best_t = float(self.best_dist[0]), float(self.best_dist_time[0])
+        if dist > best:
+            best, best_t = dist, now
+        self.best_dist, self.best_dist_time = np.array([best]), np.array([best_t])
+        tp, ang = float(self.track_pos[0]), float(self.angle[0])
+        off = abs(tp) > 1.0
+        off_t = float(self.offtrack_time[0]) + dt if off else 0.0
+        self.offtrack_time = np.array([off_t])
+        if off and off_t > self.offtrack_grace_s:
+            reason = 1
+        elif dist < best - self.backwards_m:
+            reason = 2
+        elif self.no_progress_s is not None and now - best_t > self.no_progress_s:
+            reason = 3
+        elif bool(self.fleet.flipped[0]):
+            reason = 4
+        else:
+            reason = 0
+        self.reason = np.array([reason], dtype=np.int64)
+        term = reason > 0
+        fin = self.lap_limit is not None and int(self.lap[0]) >= self.lap_limit and not term
+        self.finished = np.array([fin])
+        vx = float(self.fleet.vel_body[0, 0])
+        terms = (vx * math.cos(ang), -vx * abs(math.sin(ang)), -vx * abs(tp), progress, float(term))
+        self.terms = np.array(terms).reshape(len(REWARD_TERMS), 1)
+        w = self.reward._w
+        self.rewards = np.array([self.reward.scale * sum(w[k] * terms[k] for k in range(len(terms)))])
+        self.terminated = np.array([term])
+        self.truncated = np.array([not term and (int(self.steps[0]) >= self.max_steps or fin)])
 
     # ------------------------------------------------------------------ internals
     def _locate(self, idx_reset: np.ndarray | None = None) -> None:
