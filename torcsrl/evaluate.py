@@ -484,7 +484,8 @@ def plot_trajectory(track, trace: Mapping[str, np.ndarray], path: str | Path, ti
     wl, wr = track.width(s)
     d = np.where(tp >= 0, tp * wl, tp * wr)
     xy = np.asarray(track.to_world(s, d), dtype=float).reshape(-1, 2)
-    fig, ax = plt.subplots(figsize=(7.5, 7))
+    span = np.ptp(np.vstack([track.left_edge, track.right_edge]), axis=0)  # [m] x, y extent
+    fig, ax = plt.subplots(figsize=(7.5, float(np.clip(6.5 * span[1] / max(span[0], 1.0) + 1.2, 3.0, 9.0))))
     for edge in (track.left_edge, track.right_edge):
         closed = np.vstack([edge, edge[:1]])
         ax.plot(closed[:, 0], closed[:, 1], color="0.35", lw=0.8)
@@ -511,7 +512,7 @@ def plot_trajectory(track, trace: Mapping[str, np.ndarray], path: str | Path, ti
     ax.set_title(title or track.name, fontsize=10)
     fig.tight_layout()
     path = Path(path)
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return path
 

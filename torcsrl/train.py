@@ -40,7 +40,7 @@ from types import SimpleNamespace
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 from tensordict import TensorDict, TensorDictBase
 from torchrl.collectors import MultiSyncCollector
 from torchrl.envs import Compose, EnvBase, InitTracker, RewardSum, TransformedEnv
@@ -417,7 +417,17 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     print(f"[torcsrl] done: {counters.frames} steps, {counters.episodes} episodes in {wall:.1f} s; outputs in {run_dir}\n"
           f"[torcsrl] last checkpoint: {result['checkpoint']}\n"
           f"[torcsrl] resume: python -m torcsrl.train run_dir={run_dir} checkpoint.resume=latest total_frames=<more>", file=sys.stderr)
+    if cfg.env.name == "race" and result["checkpoint"]:
+        print(f"[torcsrl] evaluate: python -m torcsrl.evaluate --policy {run_dir} --track {_track_arg(cfg.env.track)} --laps 10\n"
+              f"[torcsrl]           python -m torcsrl.evaluate --policy {run_dir} --track set:heldout --surface asphalt dirt --laps 10",
+              file=sys.stderr)
     return result
+
+
+def _track_arg(track) -> str:
+    """``--track`` words for the training track(s)."""
+    names = list(track) if isinstance(track, (list, tuple, ListConfig)) else [track]
+    return " ".join(str(t) for t in names)
 
 
 def _save(cfg, ckpt_dir, meta, counters, loss, optim, policy, collector, env, eval_env, buffer, threads) -> Path:
