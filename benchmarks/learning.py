@@ -67,6 +67,8 @@ def run_seed(env: str, algo: str, seed: int, budget: int, chunk: int, overrides:
             found["first_clean_lap"] = (frames, wall)
         if laps >= 10:
             found["clean_10_laps"] = (frames, wall)
+        print(f"[learning] {algo} seed {seed}: {frames:>8} steps, {wall:8.1f} s training wall-clock, "
+              f"validation: {laps} of 10 laps, return {ev['eval/reward']:.1f}", flush=True)
     return {"seed": seed, **found, "frames": frames, "wall_s": wall}
 
 

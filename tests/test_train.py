@@ -114,6 +114,25 @@ def test_exact_resume_after_sigkill(tmp_path):
         assert read_csv_metric(killed, m) == read_csv_metric(tmp_path / "ref", m), m
 
 
+def test_race_env_resumes_exactly(tmp_path):
+    """The pybullet race env saves its whole simulation in the checkpoint (RaceCore.get_state):
+    a run stopped at a checkpoint and resumed logs exactly what the uninterrupted run logs."""
+    def race(*ov):
+        with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+            return compose("train", overrides=["env=race", "debug=smoke", "env.track=[hairpins,oval]", "env.num_cars=2",
+                                               "env.max_steps=60", "eval.max_steps=30", "checkpoint.every_frames=200",
+                                               "collector.frames_per_batch=20", *ov])
+
+    ref = train(race("total_frames=400", f"run_dir={tmp_path / 'ref'}"))
+    train(race("total_frames=200", f"run_dir={tmp_path / 'cut'}"))
+    res = train(race("total_frames=400", f"run_dir={tmp_path / 'cut'}", "checkpoint.resume=latest"))
+    assert ref["episodes"] > 4  # episodes ended and restarted inside the run
+    for k in ("frames", "updates", "episodes", "loss/qvalue", "eval/reward"):
+        assert res[k] == ref[k], k
+    for m in ("loss/qvalue", "train/episode_reward", "train/buffer_size"):
+        assert read_csv_metric(tmp_path / "cut", m) == read_csv_metric(tmp_path / "ref", m), m
+
+
 def test_bad_checkpoints_give_one_clear_line(tmp_path):
     r = train(cfg_for("algo=td3", f"run_dir={tmp_path / 'a'}", "total_frames=200", "checkpoint.buffer=false"))
     good = Path(r["checkpoint"])

@@ -139,6 +139,17 @@ class TorchRaceEnv(EnvBase):
     def _set_seed(self, seed: int | None) -> None:
         self.core.seed(seed)
 
+    # ------------------------------------------------------------------ exact resume
+    def get_sim_state(self) -> dict[str, Any]:
+        """The simulation's whole dynamic state as tensors and plain values (a checkpoint loads it
+        with ``weights_only=True``): see :meth:`RaceCore.get_state`."""
+        return _to_torch(self.core.get_state())
+
+    def set_sim_state(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`get_sim_state` into an env made with the same arguments: the next steps
+        are bit for bit those the saved env would have taken (CPU)."""
+        self.core.set_state(_to_numpy(state))
+
     def close(self, *, raise_if_closed: bool = True) -> None:
         if getattr(self, "core", None) is not None:
             self.core.close()
@@ -150,3 +161,25 @@ class TorchRaceEnv(EnvBase):
     def __setstate__(self, state):
         kw = dict(state["kwargs"])
         self.__init__(device=state["device"], **kw)
+
+
+def _to_torch(x: Any) -> Any:
+    """numpy arrays -> tensors, recursively (dicts and lists); other values as they are."""
+    if isinstance(x, np.ndarray):
+        return torch.from_numpy(np.ascontiguousarray(x))
+    if isinstance(x, dict):
+        return {k: _to_torch(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_to_torch(v) for v in x]
+    return x
+
+
+def _to_numpy(x: Any) -> Any:
+    """The inverse of :func:`_to_torch` (``rng`` state dicts of ints pass through)."""
+    if isinstance(x, torch.Tensor):
+        return x.numpy()
+    if isinstance(x, dict):
+        return {k: _to_numpy(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_to_numpy(v) for v in x]
+    return x

@@ -13,6 +13,8 @@ bookkeeping (progress, laps) → observe (sensors) → reward terms → terminat
 from __future__ import annotations
 
 import math
+import os
+import tempfile
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -154,6 +156,7 @@ class RaceCore:
         self.rng = np.random.default_rng(seed)
         self.slot = np.zeros(n, dtype=np.int64)
         self.car_tracks = [self._variant(0, self.surfaces[0])] * n
+        self.surface_pick: list[str | None] = [self.surfaces[0]] * n  # surface override drawn per car
         self.s = np.zeros(n)
         self.d = np.zeros(n)
         self.chord = np.zeros(n, dtype=np.int64)  # centreline chord the car was last on
@@ -175,6 +178,9 @@ class RaceCore:
         self.finished = np.zeros(n, dtype=bool)
         self.reason = np.zeros(n, dtype=np.int64)
         self.terms = np.zeros((len(REWARD_TERMS), n))
+        self.rewards = np.zeros(n)
+        self.terminated = np.zeros(n, dtype=bool)
+        self.truncated = np.zeros(n, dtype=bool)
         self.obs: dict[str, np.ndarray] = {}
 
     # ------------------------------------------------------------------ setup helpers
@@ -220,6 +226,7 @@ class RaceCore:
             t = self._variant(int(slots[j]), surf[j])
             self.slot[i] = slots[j]
             self.car_tracks[i] = t
+            self.surface_pick[i] = surf[j]
             s0 = rng.uniform(0.0, t.length) if self.start == "random" else 0.0
             dj = rng.uniform(-1.0, 1.0) * self.spawn_jitter[0] if self.spawn_jitter[0] else 0.0
             yj = rng.uniform(-1.0, 1.0) * self.spawn_jitter[1] if self.spawn_jitter[1] else 0.0
@@ -241,6 +248,41 @@ class RaceCore:
         self.terms[:, idx] = 0.0
         self._locate(idx_reset=idx)
         self._observe()
+
+    # ------------------------------------------------------------------ exact resume
+    def get_state(self) -> dict[str, Any]:
+        """Every piece of dynamic state, for an exact resume on CPU: the pybullet world (bodies'
+        poses and velocities, as ``saveBullet`` bytes), the cars' drivetrain state, each car's
+        track and surface, the episode books, the last observation and the generator.
+        :meth:`set_state` on a core built with the same arguments continues bit for bit."""
+        with tempfile.TemporaryDirectory() as tmp:
+            f = os.path.join(tmp, "world.bullet")
+            p.saveBullet(f, physicsClientId=self.client)
+            world = np.fromfile(f, dtype=np.uint8)
+        books = {k: np.array(getattr(self, k), copy=True) for k in _BOOK_FIELDS}
+        return {"world": world, "fleet": self.fleet.get_state(), "books": books,
+                "surface_pick": list(self.surface_pick), "obs": {k: v.copy() for k, v in self.obs.items()},
+                "camera_slots": list(getattr(self.camera, "_worlds", {}) or {}), "rng": self.rng.bit_generator.state}
+
+    def set_state(self, state: Mapping[str, Any]) -> None:
+        """Restore what :meth:`get_state` returned (same track list, cars, sensors and settings)."""
+        books = state["books"]
+        if len(books["s"]) != self.n:
+            raise ValueError(f"saved state holds {len(books['s'])} cars; this env has {self.n}")
+        if self.camera is not None:  # build the visual worlds the saved client had, in its order
+            for k in state.get("camera_slots", []):
+                self.camera.world(int(k))
+        with tempfile.TemporaryDirectory() as tmp:
+            f = os.path.join(tmp, "world.bullet")
+            np.asarray(state["world"], dtype=np.uint8).tofile(f)
+            p.restoreState(fileName=f, physicsClientId=self.client)
+        for k in _BOOK_FIELDS:
+            setattr(self, k, np.array(books[k], copy=True))
+        self.surface_pick = list(state["surface_pick"])
+        self.car_tracks = [self._variant(int(self.slot[i]), self.surface_pick[i]) for i in range(self.n)]
+        self.obs = {k: np.array(v, copy=True) for k, v in state["obs"].items()}
+        self.rng.bit_generator.state = state["rng"]
+        self.fleet.set_state(state["fleet"])
 
     # ------------------------------------------------------------------ step
     def sanitize(self, action) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -466,6 +508,12 @@ class RaceCore:
             except p.error:
                 pass
             self.client = None
+
+
+#: RaceCore's per-car episode books, saved by :meth:`RaceCore.get_state`.
+_BOOK_FIELDS = ("slot", "s", "d", "chord", "s0", "dist_raced", "best_dist", "best_dist_time", "lap", "crossings", "time",
+                "lap_start_time", "lap_timed", "last_lap_time", "best_lap_time", "steps", "offtrack_time", "angle",
+                "track_pos", "finished", "reason", "terms", "rewards", "terminated", "truncated")
 
 
 class RaceEnv(gym.Env, EzPickle):

@@ -70,7 +70,7 @@ from __future__ import annotations
 import bisect
 import dataclasses
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from importlib import resources
 from typing import Any
@@ -560,6 +560,25 @@ class CarFleet:
             p.setCollisionFilterGroupMask(b, -1, CAR_GROUP, mask, physicsClientId=self.client)
 
     # ---- surfaces ---------------------------------------------------------------------------
+    def get_state(self) -> dict[str, np.ndarray]:
+        """The fleet's own dynamic state (wheel spin, steer angle, gear, rpm, wheel loads, surfaces);
+        the bodies' poses and velocities live in the pybullet client (``saveBullet``)."""
+        return {k: np.array(getattr(self, k), copy=True) for k in ("_omega", "_delta", "_gear", "_rpm", "_fz", "_surface")}
+
+    def set_state(self, state: Mapping[str, np.ndarray]) -> None:
+        """Restore :meth:`get_state` after the client's bodies were restored; re-reads the poses."""
+        for k in ("_omega", "_delta", "_gear", "_rpm", "_fz"):
+            v = np.array(state[k], copy=True)
+            if v.shape != getattr(self, k).shape:
+                raise ValueError(f"fleet state {k} has shape {v.shape}; this fleet needs {getattr(self, k).shape}")
+            setattr(self, k, v)
+        self.set_wheel_surfaces(np.asarray(state["_surface"]))
+        if self.backend == "python":
+            self._read_frames()
+            self._publish_frames()
+        else:
+            self._read_state()
+
     def set_wheel_surfaces(self, surface_ids: Any) -> None:
         """Surface id under each wheel, ``[N, 4]`` ints indexing ``surfaces.SURFACE_NAMES`` (or a scalar)."""
         ids = np.asarray(surface_ids)
