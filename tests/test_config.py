@@ -261,7 +261,7 @@ def test_misspelt_keys_fail_at_composition_or_validation():
 
 
 def test_wrong_types_name_the_key():
-    assert "total_frames: expected an integer like 1000000, got 'lots'" in one_problem("total_frames=lots")
+    assert "total_frames: expected an integer like 100000, got 'lots'" in one_problem("total_frames=lots")
     assert "env.num_cars: expected an integer, got 'two'" in one_problem("env.num_cars=two")
     assert "algo.actor_lr: expected a number" in one_problem("algo.actor_lr=fast")
     assert "env.normalize: expected a boolean" in one_problem("env.normalize=3")

@@ -285,7 +285,13 @@ def _run_dir(cfg: DictConfig) -> Path:
 
 
 def train(cfg: DictConfig) -> dict[str, Any]:
-    """Train ``cfg.algo`` on ``cfg.env``; returns the final metrics (and where things were written)."""
+    """Train ``cfg.algo`` on ``cfg.env``; returns the final metrics (and where things were written).
+
+    The config is checked first (:func:`torcsrl.config.validate`: unknown keys, wrong types, unknown
+    names, severities): a ``ConfigError`` naming every problem, before anything is built."""
+    from torcsrl.config import validate as check_config
+
+    check_config(cfg)
     run_dir = _run_dir(cfg)
     run_dir.mkdir(parents=True, exist_ok=True)
     ckpt_dir = run_dir / "checkpoints"
@@ -497,7 +503,7 @@ def main_entry() -> None:
         from torcsrl.config import objective, save_run_info, validate, write_metrics
 
         try:
-            validate(cfg)  # unknown keys, wrong types, unknown names, severities: before anything is built
+            validate(cfg)  # unknown keys, wrong types, unknown names, severities: before anything is built (train checks too)
             run_dir = _run_dir(cfg)
             save_run_info(cfg, run_dir)  # config.yaml (resolved) + git_rev.txt
             result = train(cfg)
