@@ -131,6 +131,8 @@ def test_race_env_resumes_exactly(tmp_path):
         assert res[k] == ref[k], k
     for m in ("loss/qvalue", "train/episode_reward", "train/buffer_size"):
         assert read_csv_metric(tmp_path / "cut", m) == read_csv_metric(tmp_path / "ref", m), m
+    saved = sorted(int(p.stem.split("_")[1]) for p in (tmp_path / "cut" / "checkpoints").glob("ckpt_*.pt"))
+    assert saved == [200, 400], saved  # the resumed run saved on schedule, not again right after resuming
 
 
 def test_bad_checkpoints_give_one_clear_line(tmp_path):

@@ -390,10 +390,10 @@ def train(cfg: DictConfig) -> dict[str, Any]:
 
             # checkpoint
             if counters.frames >= counters.next_ckpt or counters.frames >= total:
-                _save(cfg, ckpt_dir, meta, counters, loss, optim, policy, collector, env, eval_env, buffer, threads)
                 every = int(cfg.checkpoint.every_frames) or total
-                while counters.next_ckpt <= counters.frames:
+                while counters.next_ckpt <= counters.frames:  # advanced first: a resumed run does not save again at once
                     counters.next_ckpt += every
+                _save(cfg, ckpt_dir, meta, counters, loss, optim, policy, collector, env, eval_env, buffer, threads)
         progress.update(counters.frames, (counters.frames - f_win) / max(time.perf_counter() - t_win, 1e-9), force=True)
         if cfg.buffer.save_at_end:
             save_dir_atomically(run_dir / "buffer_final", lambda d: buffer.dumps(str(d)))
