@@ -135,6 +135,20 @@ def test_race_env_resumes_exactly(tmp_path):
     assert saved == [200, 400], saved  # the resumed run saved on schedule, not again right after resuming
 
 
+def test_resume_is_exact_with_stateful_degradations(tmp_path):
+    """Degradations with per-episode draws and temporal buffers (stuck beams, latency, noise) save
+    their generators and running state in the checkpoint: the resumed run logs what the
+    uninterrupted run logs."""
+    ov = ["degradation=[rangefinder.stuck,state.latency,rangefinder.noise]", "checkpoint.every_frames=300"]
+    ref = train(cfg_for(*ov, "total_frames=600", f"run_dir={tmp_path / 'ref'}"))
+    train(cfg_for(*ov, "total_frames=300", f"run_dir={tmp_path / 'cut'}"))
+    res = train(cfg_for(*ov, "total_frames=600", f"run_dir={tmp_path / 'cut'}", "checkpoint.resume=latest"))
+    for k in ("frames", "updates", "episodes", "loss/qvalue", "eval/reward"):
+        assert res[k] == ref[k], k
+    for m in ("loss/qvalue", "train/episode_reward"):
+        assert read_csv_metric(tmp_path / "cut", m) == read_csv_metric(tmp_path / "ref", m), m
+
+
 def test_bad_checkpoints_give_one_clear_line(tmp_path):
     r = train(cfg_for("algo=td3", f"run_dir={tmp_path / 'a'}", "total_frames=200", "checkpoint.buffer=false"))
     good = Path(r["checkpoint"])

@@ -244,15 +244,35 @@ class Counters:
     next_log: int = 0  # log when frames >= next_log
 
 
+def _stateful_transforms(env: EnvBase) -> list:
+    """The env's transforms that carry running state (degradations), in a fixed order."""
+    t = getattr(env, "transform", None)
+    return [m for m in t.modules() if hasattr(m, "get_sim_state")] if t is not None else []
+
+
 def _sim_state(env: EnvBase) -> dict | None:
+    """The base env's simulation state and every degradation's generator and running state, or
+    None when the base env cannot save its simulation."""
     base = getattr(env, "base_env", env)
-    return base.get_sim_state() if hasattr(base, "get_sim_state") else None
+    if not hasattr(base, "get_sim_state"):
+        return None
+    return {"base": base.get_sim_state(), "transforms": [m.get_sim_state() for m in _stateful_transforms(env)]}
 
 
 def _set_sim_state(env: EnvBase, state: dict | None) -> None:
     base = getattr(env, "base_env", env)
-    if state is not None and hasattr(base, "set_sim_state"):
+    if state is None or not hasattr(base, "set_sim_state"):
+        return
+    if not (isinstance(state, dict) and set(state) == {"base", "transforms"}):  # before transforms were saved
         base.set_sim_state(state)
+        return
+    base.set_sim_state(state["base"])
+    mods = _stateful_transforms(env)
+    if len(mods) != len(state["transforms"]):
+        raise CheckpointError(f"checkpoint holds the state of {len(state['transforms'])} degradation transforms; "
+                              f"this run's config has {len(mods)}")
+    for m, st in zip(mods, state["transforms"]):
+        m.set_sim_state(st)
 
 
 def expected_meta(cfg: DictConfig, env: EnvBase, obs_keys: list[str]) -> dict:

@@ -269,6 +269,19 @@ class Degradation(Transform):
     def randint(self, low: int, high: int, shape, device) -> torch.Tensor:
         return torch.randint(low, high, shape, generator=self._gen(device), device=device)
 
+    # ------------------------------------------------------------------ exact resume
+    def get_sim_state(self) -> dict:
+        """The generator and the running per-env state (episode draws, temporal buffers) as
+        tensors and plain values, for a checkpoint (``weights_only`` loadable)."""
+        return {"generator": self._generator.get_state(), "state": _export_tree(self._state)}
+
+    def set_sim_state(self, state: dict) -> None:
+        """Restore :meth:`get_sim_state`: the next calls draw and degrade exactly as the saved
+        transform's would have (CPU)."""
+        self._generator.set_state(state["generator"])
+        self._dev_generators = {}
+        self._state = _import_tree(state["state"])
+
     def clone(self):
         other = super().clone()
         g = torch.Generator()
@@ -489,6 +502,37 @@ class Degradation(Transform):
 
 
 # ---------------------------------------------------------------------------------------
+def _export_tree(x: Any) -> Any:
+    """A degradation's running state as checkpointable values: tensors cloned, ``torch.Size`` and
+    ``torch.device`` tagged (weights-only loading accepts neither)."""
+    if isinstance(x, torch.Tensor):
+        return x.detach().clone()
+    if isinstance(x, torch.Size):
+        return {"__size__": list(x)}
+    if isinstance(x, torch.device):
+        return {"__device__": str(x)}
+    if isinstance(x, dict):
+        return {k: _export_tree(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_export_tree(v) for v in x]
+    return x
+
+
+def _import_tree(x: Any) -> Any:
+    """The inverse of :func:`_export_tree`."""
+    if isinstance(x, torch.Tensor):
+        return x.clone()
+    if isinstance(x, dict):
+        if set(x) == {"__size__"}:
+            return torch.Size(x["__size__"])
+        if set(x) == {"__device__"}:
+            return torch.device(x["__device__"])
+        return {k: _import_tree(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_import_tree(v) for v in x]
+    return x
+
+
 class KeepClean(Transform):
     """Copies each key to ``key + suffix`` (the clean reading kept for analysis).
 
