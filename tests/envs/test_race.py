@@ -413,6 +413,23 @@ def test_one_car_float_bookkeeping_matches_the_vectorised_rules():
     two.close()
 
 
+def test_stable_baselines3_trains_on_the_gymnasium_face_unchanged():
+    """An outside client: SB3's TD3 with its dict-observation policy learns for a few hundred steps
+    (needs ``pip install -e ".[bench]"``; skipped otherwise, and CI does not install it)."""
+    sb3 = pytest.importorskip("stable_baselines3")
+    import torch
+
+    torch.set_num_threads(1)
+    env = gym.make("torcsrl/Race-v0", track="oval", control_hz=10, substeps=20)
+    model = sb3.TD3("MultiInputPolicy", env, learning_starts=100, seed=0, verbose=0,
+                    policy_kwargs={"net_arch": [32, 32]})
+    model.learn(300)
+    obs, _ = env.reset(seed=0)
+    action, _ = model.predict(obs, deterministic=True)
+    assert env.action_space.contains(action.astype(np.float32))
+    env.close()
+
+
 def test_memory_stays_flat_over_resets_and_steps():
     import importlib.util
     import pathlib
