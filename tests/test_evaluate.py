@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from torcsrl.evaluate import EvalError, evaluate, main, parse_degradation, run_cell, seed_for
-from torcsrl.policies import CheckpointPolicy, PolicyError, load_policy
+from torcsrl.policies import CheckpointPolicy, load_policy
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -171,6 +171,18 @@ def test_bad_inputs_fail_with_one_line_before_any_work(tmp_path, capsys):
         assert not out.exists(), argv  # nothing was started
     with pytest.raises(EvalError, match="unknown weather preset"):
         parse_degradation("weather.hail@2")
-    if not (ROOT / "torcsrl" / "assets" / "reference_td3.pt").exists():
-        with pytest.raises(PolicyError, match="not shipped yet"):
-            load_policy("reference")
+
+
+def test_the_shipped_reference_driver_loads_with_its_config():
+    """The package ships a TD3 policy file (rangefinder + state) with its training summary beside it."""
+    from torcsrl.policies import REFERENCE_POLICY
+
+    assert REFERENCE_POLICY.is_file(), "torcsrl/assets/reference_td3.pt is the shipped reference driver"
+    assert REFERENCE_POLICY.with_suffix(".md").is_file(), "its training summary ships beside it"
+    ref = load_policy("reference")
+    assert isinstance(ref, CheckpointPolicy) and ref.name == "reference"
+    assert set(ref.obs_keys) == {"rangefinder", "state"}
+    # it drives: a deterministic action in [-1, 1] from a clean reading on a training track
+    res = evaluate("reference", "oval", laps=1, seed=0, max_steps=50, plots=False, expert_laps=0, verbose=False)
+    (ep,) = res["episodes"]
+    assert ep["steps"] == 50 and ep["distance_m"] > 50.0 and ep["off_track_events"] == 0

@@ -177,3 +177,19 @@ def test_bad_input_fails_with_one_line_before_any_work(tmp_path, capsys):
         assert rc == 2, argv
         assert len(err) == 1 and err[0].startswith("torcsrl.report: error:") and msg in err[0], (argv, err)
         assert not out.exists(), argv
+
+
+def test_tiny_report_on_the_shipped_reference_driver(tmp_path):
+    """The README's quick demo in miniature: the shipped policy, a few cells, every output file."""
+    from torcsrl.policies import REFERENCE_POLICY, file_fingerprint
+
+    cfg = tiny(policies=["reference"], degradations=["rangefinder.dropout"], severities=[0, 3], max_steps=60)
+    run_report(cfg, tmp_path, verbose=False)
+    for f in OUTPUTS:
+        assert (tmp_path / f).is_file() and (tmp_path / f).stat().st_size > 0, f
+    d = _strict_json(tmp_path / "robustness.json")
+    assert d["summary"]["reference"] == "reference"
+    cells = [c for c in d["cells"] if c["cell"]["policy"] == "reference"]
+    assert {c["cell"]["severity"] for c in cells} == {0, 3}
+    # cached cells are keyed by the shipped file's bytes
+    assert {r["policy_fingerprint"] for c in cells for r in c["rows"]} == {file_fingerprint(REFERENCE_POLICY)}

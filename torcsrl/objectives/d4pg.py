@@ -7,7 +7,9 @@ distribution at ``(s', mu'(s'))`` shifted by ``Tz = r + gamma^n (1 - terminated)
 loss: cross-entropy between that projection and the predicted distribution. Actor loss:
 ``-E_z[Q(s, mu(s))]`` under the predicted distribution, critic weights detached.
 
-N-step returns come from TorchRL's ``MultiStepTransform`` (``steps_to_next_obs``); the
+N-step returns arrive in the batch as ``("next", "reward")`` summed over the window and
+``steps_to_next_obs`` (the keys TorchRL's ``MultiStepTransform`` writes; the training loop's
+:mod:`torcsrl.utils.replay` forms them at sampling, tested equal to that transform); the
 per-sample cross-entropy is written as the priority for prioritized replay.
 
 Shaped like TorchRL's ``TD3Loss``: ``_AcceptedKeys``, ``actor_loss``/``value_loss``, targets
