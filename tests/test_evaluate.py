@@ -182,7 +182,7 @@ def test_the_shipped_reference_driver_loads_with_its_config():
     ref = load_policy("reference")
     assert isinstance(ref, CheckpointPolicy) and ref.name == "reference"
     assert set(ref.obs_keys) == {"rangefinder", "state"}
-    # it drives: a deterministic action in [-1, 1] from a clean reading on a training track
+    # it drives off the grid of a training track and stays on the road
     res = evaluate("reference", "oval", laps=1, seed=0, max_steps=50, plots=False, expert_laps=0, verbose=False)
     (ep,) = res["episodes"]
-    assert ep["steps"] == 50 and ep["distance_m"] > 50.0 and ep["off_track_events"] == 0
+    assert ep["steps"] == 50 and ep["distance_m"] > 20.0 and ep["off_track_events"] == 0  # 5 s from a standstill at 10 Hz
