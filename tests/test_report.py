@@ -193,3 +193,6 @@ def test_tiny_report_on_the_shipped_reference_driver(tmp_path):
     assert {c["cell"]["severity"] for c in cells} == {0, 3}
     # cached cells are keyed by the shipped file's bytes
     assert {r["policy_fingerprint"] for c in cells for r in c["rows"]} == {file_fingerprint(REFERENCE_POLICY)}
+    # 60 steps cannot finish a lap: the clean cell fails, and the summary says so instead of "breaks at 0"
+    md = (tmp_path / "REPORT.md").read_text()
+    assert "already fails clean" in md and "at severity 0." not in md

@@ -640,7 +640,9 @@ def build_report(rows: Sequence[Mapping[str, Any]], out_dir: str | Path, *, poli
     lead = f"**{best}** has the highest mRR of {n_p}:" if len(pols) > 1 else f"**{best}**: mRR"
     line = (f"{lead} {_ci(bp['mrr'], bp['mrr_ci'])}, mCE {_pct(bp['mce'])} of {ref}'s; "
             f"clean LCR {_pct(bp['clean']['lcr'])}; worst degradation {wc['corruption']} (mean NR {_f(wc['nr'])}); "
-            + (f"first breaks (LCR < 50%) under {fb['corruption']} at severity {fb['severity']}." if fb
+            + ("already fails clean (LCR < 50% at severity 0): read normalised return, not breaking severity."
+               if fb and fb["severity"] == 0 else
+               f"first breaks (LCR < 50%) under {fb['corruption']} at severity {fb['severity']}." if fb
                else "never breaks (LCR >= 50% everywhere)."))
     finite = [p for p in pols if summary["policies"][p]["mce"] is not None]
     if len(pols) > 1 and finite:
