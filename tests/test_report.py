@@ -196,3 +196,4 @@ def test_tiny_report_on_the_shipped_reference_driver(tmp_path):
     # 60 steps cannot finish a lap: the clean cell fails, and the summary says so instead of "breaks at 0"
     md = (tmp_path / "REPORT.md").read_text()
     assert "already fails clean" in md and "at severity 0." not in md
+    assert "| fails clean |" in md and "@ 0 |" not in md  # the leaderboard says the same

@@ -578,6 +578,11 @@ def plot_severity_curves(summary: Mapping[str, Any], path: Path, reused: set[tup
     return path
 
 
+def _fails_clean(first_break: Mapping[str, Any] | None) -> bool:
+    """A policy whose "first break" is severity 0 never completed laps clean: no degradation broke it."""
+    return bool(first_break) and first_break["severity"] == 0
+
+
 def build_report(rows: Sequence[Mapping[str, Any]], out_dir: str | Path, *, policies: Sequence[str] | None = None,
                  reference: str | None = None, corruptions: Sequence[str] | None = None, severities: Sequence[int] | None = None,
                  n_boot: int = 1000, seed: int = 0, meta: Mapping[str, Any] | None = None,
@@ -641,7 +646,7 @@ def build_report(rows: Sequence[Mapping[str, Any]], out_dir: str | Path, *, poli
     line = (f"{lead} {_ci(bp['mrr'], bp['mrr_ci'])}, mCE {_pct(bp['mce'])} of {ref}'s; "
             f"clean LCR {_pct(bp['clean']['lcr'])}; worst degradation {wc['corruption']} (mean NR {_f(wc['nr'])}); "
             + ("already fails clean (LCR < 50% at severity 0): read normalised return, not breaking severity."
-               if fb and fb["severity"] == 0 else
+               if _fails_clean(fb) else
                f"first breaks (LCR < 50%) under {fb['corruption']} at severity {fb['severity']}." if fb
                else "never breaks (LCR >= 50% everywhere)."))
     finite = [p for p in pols if summary["policies"][p]["mce"] is not None]
@@ -670,7 +675,7 @@ def build_report(rows: Sequence[Mapping[str, Any]], out_dir: str | Path, *, poli
                      _ci(d["mrr"], d["mrr_ci"]), _ci(None if d["mce"] is None else 100 * d["mce"],
                                                      [None if v is None else 100 * v for v in d["mce_ci"]], "{:.0f}%"),
                      _pct(d["relative_mce"]), _f(d["mean_ausc"]), f"{w['corruption']} ({_f(w['nr'])})" if w["corruption"] else "–",
-                     f"{b['corruption']} @ {b['severity']}" if b else "none"])
+                     "fails clean" if _fails_clean(b) else f"{b['corruption']} @ {b['severity']}" if b else "none"])
     doc.table(header, body)
     doc.h(2, "Plots")
     doc.img(heat, "NR heatmap")
