@@ -324,6 +324,10 @@ def _check_algo(algo: Any, out: list[str]) -> None:
     _against(ref, algo, "algo", out, source="conf/algo/base.yaml", per_dim=per_dim)
     if isinstance(algo, Mapping) and algo.get("name") not in (*ALGOS, "???"):
         out.append(f"algo.name: unknown algorithm {algo.get('name')!r}; allowed: {', '.join(ALGOS)}")
+    from torcsrl.agents._build import PRECISIONS
+
+    if isinstance(algo, Mapping) and "precision" in algo and algo["precision"] not in PRECISIONS:
+        out.append(f"algo.precision: unknown precision {algo['precision']!r}; allowed: {', '.join(PRECISIONS)}")
 
 
 def _check_env(env: Mapping, path: str, out: list[str], only: set | None = None, bare: bool = False) -> None:

@@ -25,6 +25,28 @@ def test_ensemble_linear_equals_separate_linears():
         torch.testing.assert_close(y3[e], x3[e] @ lin.weight[e] + lin.bias[e])
 
 
+@pytest.mark.parametrize("needs", [(True, True, True), (False, True, True), (True, False, False)])
+def test_ensemble_scalar_head_values_and_gradients_equal_baddbmm(needs):
+    """The one-column output layer (the twin critics' Q head) takes its own kernel: same maths as baddbmm."""
+    torch.manual_seed(0)
+    x, w, b = torch.randn(2, 9, 6, dtype=torch.float64), torch.randn(2, 6, 1, dtype=torch.float64), torch.randn(2, 1, 1, dtype=torch.float64)
+    for t, n in zip((x, w, b), needs):
+        t.requires_grad_(n)
+    lin = EnsembleLinear(2, 6, 1).double()
+    with torch.no_grad():
+        lin.weight.copy_(w)
+        lin.bias.copy_(b)
+    torch.testing.assert_close(lin(x.detach()), torch.baddbmm(b, x, w).detach())
+    from torcsrl.agents.networks import ensemble_linear
+
+    torch.autograd.gradcheck(ensemble_linear, (x, w, b))
+    g = torch.randn(2, 9, 1, dtype=torch.float64)
+    got = torch.autograd.grad(ensemble_linear(x, w, b), [t for t in (x, w, b) if t.requires_grad], g)
+    want = torch.autograd.grad(torch.baddbmm(b, x, w), [t for t in (x, w, b) if t.requires_grad], g)
+    for u, v in zip(got, want):
+        torch.testing.assert_close(u, v)
+
+
 def test_critic_member_matches_forward_and_has_no_param_grad():
     env = make_toy_env()
     keys = ["rangefinder", "state"]

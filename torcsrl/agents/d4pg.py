@@ -49,4 +49,5 @@ def make_optimizers(cfg: Any, loss):
 
 def update(cfg: Any, loss, optim, updater, batch, n_update: int) -> dict:
     """Critic, actor and targets every step."""
-    return _build.update(loss, optim, updater, batch, n_update, policy_delay=1, grad_clip=cfg.grad_clip)
+    return _build.update(loss, optim, updater, batch, n_update, policy_delay=1, grad_clip=cfg.grad_clip,
+                         precision=cfg.precision)

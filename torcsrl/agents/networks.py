@@ -196,13 +196,44 @@ class EnsembleLinear(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if x.dim() == 2:
             x = x.expand(self.weight.shape[0], *x.shape)
-        return torch.baddbmm(self.bias, x, self.weight)
+        return ensemble_linear(x, self.weight, self.bias)
+
+
+class _MemberDot(torch.autograd.Function):
+    """``[E,B,H] x [E,H,1] + [E,1,1] -> [E,B,1]``: an ensemble's scalar output layer, one ``mv`` per member.
+
+    ``torch.baddbmm`` takes a slow batched path when the output has one column (measured on the
+    project's CPU, E = 2, B = H = 256, 1 thread: 90 us forward and 150 us forward + backward,
+    against 20 and 100 here). Same values up to float32 rounding; exact gradients of the same maths.
+    """
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, w: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        ctx.save_for_backward(x, w)
+        return torch.stack([torch.mv(x[e], w[e, :, 0]) for e in range(x.shape[0])]).unsqueeze_(-1).add_(b)
+
+    @staticmethod
+    def backward(ctx, g: torch.Tensor):
+        x, w = ctx.saved_tensors
+        gx = g * w.transpose(1, 2) if ctx.needs_input_grad[0] else None
+        gw = torch.stack([torch.mv(x[e].t(), g[e, :, 0]) for e in range(x.shape[0])]).unsqueeze_(-1) if ctx.needs_input_grad[1] else None
+        gb = g.sum(1, keepdim=True) if ctx.needs_input_grad[2] else None
+        return gx, gw, gb
+
+
+def ensemble_linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+    """``x @ weight + bias`` per ensemble member: ``[E,B,in] x [E,in,out] -> [E,B,out]`` (the fastest kernel for the shape)."""
+    if weight.shape[-1] == 1 and weight.shape[0] > 1 and x.dtype == weight.dtype:
+        return _MemberDot.apply(x, weight, bias)
+    return torch.baddbmm(bias, x, weight)
 
 
 class Critic(nn.Module):
     """Q(s, a) ensemble: encoder(s) ++ a -> E fused MLPs -> ``[E, B, out_dim]``.
 
     ``out_dim`` is 1 for DDPG/TD3 and the number of atoms (logits) for the D4PG categorical critic.
+    Under bfloat16 autocast (``algo.precision=bfloat16``) the hidden layers run in bfloat16 and the
+    output layer in float32, so Q values and logits are always float32.
     """
 
     def __init__(self, encoder: ObsEncoder, action_dim: int, hidden: Sequence[int], num_nets: int = 1, out_dim: int = 1):
@@ -219,7 +250,10 @@ class Critic(nn.Module):
         x = x.expand(self.num_nets, *x.shape)
         last = len(self.layers) - 1
         for i, layer in enumerate(self.layers):  # EnsembleLinear.forward, inlined
-            x = torch.baddbmm(layer.bias, x, layer.weight)
+            if i == last and x.dtype != layer.weight.dtype:  # bfloat16 autocast: the output head stays float32
+                with torch.autocast(x.device.type, enabled=False):
+                    return ensemble_linear(x.to(layer.weight.dtype), layer.weight, layer.bias)
+            x = ensemble_linear(x, layer.weight, layer.bias)
             if i < last:
                 x = x.relu_()
         return x
@@ -235,7 +269,11 @@ class Critic(nn.Module):
         x = torch.cat([feat, action], -1)
         last = len(self.layers) - 1
         for i, layer in enumerate(self.layers):
-            x = torch.addmm(layer.bias[index].detach(), x, layer.weight[index].detach())
+            w, b = layer.weight[index].detach(), layer.bias[index].detach()
+            if i == last and x.dtype != w.dtype:  # bfloat16 autocast: the output head stays float32
+                with torch.autocast(x.device.type, enabled=False):
+                    return torch.addmm(b, x.to(w.dtype), w)
+            x = torch.addmm(b, x, w)
             if i < last:
                 x = x.relu_()
         return x

@@ -48,4 +48,5 @@ def make_optimizers(cfg: Any, loss):
 
 def update(cfg: Any, loss, optim, updater, batch, n_update: int) -> dict:
     """Critic every step; actor and targets every ``policy_delay`` steps."""
-    return _build.update(loss, optim, updater, batch, n_update, policy_delay=int(cfg.policy_delay), grad_clip=cfg.grad_clip)
+    return _build.update(loss, optim, updater, batch, n_update, policy_delay=int(cfg.policy_delay), grad_clip=cfg.grad_clip,
+                         precision=cfg.precision)
