@@ -5,13 +5,16 @@ Same settings for all: 256x256 actor and critic, batch 256, one gradient step pe
 wall-clock second of the whole loop (collect + store + sample + update), measured after the
 warm-up, for each torch thread count asked for.
 
+A contender ``<algo>+bf16`` runs ``<algo>`` with ``algo.precision=bfloat16`` (mixed-precision
+updates; fast only where the CPU has bfloat16 units, which the header line reports).
+
 The box is shared, so absolute figures drift with the load. What counts is the RATIO to SB3
 measured side by side: each round runs every contender once (SB3 first on even rounds, last
 on odd ones), a round's ratios compare runs seconds apart, and the table gives the median
 over rounds. SB3 is used when importable (``pip install stable-baselines3``, the ``[bench]``
 extra; a ``--target /tmp/peers`` install is picked up too).
 
-    python benchmarks/train_throughput.py [--steps 1500] [--warmup 500] [--threads 1 2] [--rounds 3]
+    python benchmarks/train_throughput.py [--steps 1500] [--warmup 500] [--threads 1 2] [--rounds 3] [--algos td3 d4pg td3+bf16]
 """
 
 from __future__ import annotations
@@ -39,8 +42,25 @@ from torcsrl.utils.logging import read_csv_metric  # noqa: E402
 TARGETS = {"td3": 1.25, "d4pg": 1.0}
 
 
-def ours(algo: str, threads: int, steps: int, warmup: int, extra: list[str]) -> tuple[float, float]:
-    """(steps per wall second, steps per CPU second) of ``torcsrl.train.train`` after the warm-up (from its log)."""
+def cpu_bf16() -> str:
+    """Which bfloat16 units this CPU has (from /proc/cpuinfo), e.g. ``avx512_bf16``; ``none`` if none."""
+    try:
+        flags = set(open("/proc/cpuinfo").read().split())
+    except OSError:
+        return "unknown"
+    found = sorted(f for f in flags if f in ("avx512_bf16", "amx_bf16", "avx_ne_convert"))
+    return ", ".join(found) or "none"
+
+
+def ours(name: str, threads: int, steps: int, warmup: int, extra: list[str]) -> tuple[float, float]:
+    """(steps per wall second, steps per CPU second) of ``torcsrl.train.train`` after the warm-up (from its log).
+
+    ``name``: an algorithm, or ``<algo>+bf16`` for its mixed-precision updates."""
+    algo, _, variant = name.partition("+")
+    if variant not in ("", "bf16"):
+        raise SystemExit(f"unknown contender {name!r}; allowed: <algo> or <algo>+bf16")
+    if variant == "bf16":
+        extra = [*extra, "algo.precision=bfloat16"]
     run = tempfile.mkdtemp(prefix=f"tp_{algo}_")
     every = max(50, steps // 5)
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
@@ -124,17 +144,18 @@ def main() -> None:
         table.append((th, load0, os.getloadavg()[0], runs, ratios, cpu_ratios))
 
     print(f"\nPendulum-v1, 256x256, batch 256, UTD 1, {a.steps} steps after {a.warmup} warm-up; steps/s and ratio to SB3 TD3, "
-          f"median of {a.rounds} side-by-side rounds (cpu: ratio of steps per CPU-second, meaningful at 1 thread)")
-    head = f"{'threads':>7} | {'load':>9} | {'SB3 TD3':>8} | " + " | ".join(f"{k.upper():>7} {'ratio':>6} {'cpu':>5}" for k in a.algos)
+          f"median of {a.rounds} side-by-side rounds (cpu: ratio of steps per CPU-second, meaningful at 1 thread); "
+          f"CPU bfloat16 units: {cpu_bf16()}")
+    head = f"{'threads':>7} | {'load':>9} | {'SB3 TD3':>8} | " + " | ".join(f"{k.upper():>8} {'ratio':>6} {'cpu':>5}" for k in a.algos)
     print(head)
     for th, l0, l1, runs, ratios, cpu_ratios in table:
         sb = f"{statistics.median(runs['sb3']):8.1f}" if runs["sb3"] else f"{'n/a':>8}"
         cells = []
         for k in a.algos:
             rt = f"{statistics.median(ratios[k]):6.2f} {statistics.median(cpu_ratios[k]):5.2f}" if ratios[k] else f"{'-':>6} {'-':>5}"
-            cells.append(f"{statistics.median(runs[k]):7.1f} {rt}")
+            cells.append(f"{statistics.median(runs[k]):8.1f} {rt}")
         print(f"{th:>7} | {l0:4.1f}-{l1:<4.1f} | {sb} | " + " | ".join(cells))
-    print("targets: " + ", ".join(f"{k.upper()} >= {v} x SB3 TD3" for k, v in TARGETS.items()) + " (steps/s)")
+    print("targets: " + ", ".join(f"{k.upper()} >= {v} x SB3 TD3" for k, v in TARGETS.items()) + " (steps/s, float32)")
 
 
 if __name__ == "__main__":
