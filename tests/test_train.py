@@ -135,6 +135,45 @@ def test_race_env_resumes_exactly(tmp_path):
     assert saved == [200, 400], saved  # the resumed run saved on schedule, not again right after resuming
 
 
+def test_per_track_validation_logs_every_track_and_resumes_exactly(tmp_path):
+    """eval.per_track: one validation env per track of the list, each logged under eval/<track>/, the
+    means and the worst track over them; their states are in the checkpoint (exact resume)."""
+    def race(*ov):
+        with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+            return compose("train", overrides=["env=race", "debug=smoke", "env.track=[hairpins,oval]", "eval.per_track=true",
+                                               "env.max_steps=60", "eval.max_steps=40", "eval.every_episodes=2",
+                                               "checkpoint.every_frames=200", "collector.frames_per_batch=20", *ov])
+
+    ref = train(race("total_frames=400", f"run_dir={tmp_path / 'ref'}"))
+    metric = lambda run, m: read_csv_metric(tmp_path / run, m)  # noqa: E731
+    steps = [s for s, _ in metric("ref", "eval/laps")]
+    assert len(steps) >= 2
+    for track in ("hairpins", "oval"):
+        assert [s for s, _ in metric("ref", f"eval/{track}/reward")] == steps
+    for (_, mean), (_, a), (_, b) in zip(metric("ref", "eval/reward"), metric("ref", "eval/hairpins/reward"),
+                                         metric("ref", "eval/oval/reward")):
+        assert mean == pytest.approx((a + b) / 2)
+    laps = {t: dict(metric("ref", f"eval/{t}/laps")) for t in ("hairpins", "oval")}
+    for s, worst in metric("ref", "eval/laps_min"):
+        assert worst == min(laps["hairpins"][s], laps["oval"][s])
+    assert metric("ref", "eval/hairpins/reward") != metric("ref", "eval/oval/reward")  # two tracks, two drives
+
+    train(race("total_frames=200", f"run_dir={tmp_path / 'cut'}"))
+    res = train(race("total_frames=400", f"run_dir={tmp_path / 'cut'}", "checkpoint.resume=latest"))
+    for k in ("frames", "updates", "episodes", "eval/reward"):
+        assert res[k] == ref[k], k
+    for m in ("eval/hairpins/reward", "eval/oval/reward", "loss/qvalue"):
+        assert metric("cut", m) == metric("ref", m), m
+    with pytest.raises(CheckpointError, match=r"validated on \[.hairpins., .oval.\], this config on one env") as e:
+        train(race("total_frames=600", f"run_dir={tmp_path / 'cut'}", "checkpoint.resume=latest", "eval.per_track=false"))
+    assert "\n" not in str(e.value)
+
+
+def test_per_track_validation_needs_tracks(tmp_path):
+    with pytest.raises(ValueError, match="eval.per_track=true validates on each track of env.track; env.name='toy' has no tracks"):
+        train(cfg_for(f"run_dir={tmp_path}", "total_frames=100", "eval.per_track=true"))
+
+
 def test_resume_is_exact_with_stateful_degradations(tmp_path):
     """Degradations with per-episode draws and temporal buffers (stuck beams, latency, noise) save
     their generators and running state in the checkpoint: the resumed run logs what the

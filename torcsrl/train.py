@@ -149,8 +149,10 @@ def _env_seed(base: EnvBase, default: int) -> int:
     return int(default if seed is None else seed)
 
 
-def make_eval_env(cfg: DictConfig) -> EnvBase:
-    """One car, the validation overrides, its own seed; no transforms (rewards are summed here).
+def make_eval_envs(cfg: DictConfig) -> dict[str, EnvBase]:
+    """The validation env(s): one car, the validation overrides, its own seed; no transforms (rewards
+    are summed here). ``{"": env}``; with ``eval.per_track`` one env per track of the validation
+    track list (``eval.env.track``, else ``env.track``), keyed by track name.
 
     Validation is a time trial from the grid (Summers's protocol) even when training spawns cars at
     random points (``env.start=random``, ``env.spawn_jitter``); ``eval.env`` overrides that too."""
@@ -161,7 +163,24 @@ def make_eval_env(cfg: DictConfig) -> EnvBase:
         override["spawn_jitter"] = [0.0, 0.0]
     override.update(OmegaConf.to_container(cfg.eval.env, resolve=True) or {})
     override.update(num_cars=1, seed=int(cfg.eval.seed), device="cpu", lap_limit=cfg.eval.lap_limit, max_steps=int(cfg.eval.max_steps))
-    base = build_base_env(cfg.env.name, env_kwargs(cfg.env, **override))
+    kwargs = env_kwargs(cfg.env, **override)
+    if not cfg.eval.get("per_track", False):
+        return {"": _eval_env(cfg, kwargs)}
+    if cfg.env.name != "race":
+        raise ValueError(f"eval.per_track=true validates on each track of env.track; env.name={cfg.env.name!r} has no tracks "
+                         "(use env=race, or eval.per_track=false)")
+    import inspect
+
+    from torcsrl.envs import tracks
+    from torcsrl.envs.race import RaceCore
+
+    spec = kwargs.get("track", inspect.signature(RaceCore).parameters["track"].default)
+    names = list(dict.fromkeys(tracks.resolve(list(spec) if isinstance(spec, (list, tuple)) else spec)))
+    return {name: _eval_env(cfg, {**kwargs, "track": name}) for name in names}
+
+
+def _eval_env(cfg: DictConfig, kwargs: dict) -> EnvBase:
+    base = build_base_env(cfg.env.name, kwargs)
     ts = observation_transforms(cfg, base)
     return TransformedEnv(base, Compose(*ts)) if ts else base
 
@@ -207,6 +226,26 @@ def _lap_keys(td: TensorDictBase) -> tuple:
 
 
 @torch.no_grad()
+def validate_all(envs: dict[str, EnvBase], policy, episodes: int, max_steps: int) -> dict[str, float]:
+    """:func:`validate` on each validation env (:func:`make_eval_envs`).
+
+    One env: its metrics. One per track: ``eval/<track>/{reward,laps,lap_time,lap_time_mean}`` for
+    each, and over the tracks ``eval/reward`` and ``eval/laps`` (means), ``eval/laps_min`` (the worst
+    track: it equals the lap limit only when every track was driven clean) and ``eval/lap_time``
+    (mean of the tracks' fastest laps; NaN unless every track has a timed lap).
+    """
+    if list(envs) == [""]:
+        return validate(envs[""], policy, episodes, max_steps)
+    per = {name: validate(env, policy, episodes, max_steps) for name, env in envs.items()}
+    out = {f"eval/{name}/{k.split('/', 1)[1]}": v for name, m in per.items() for k, v in m.items()}
+    n = len(per)
+    out["eval/reward"] = sum(m["eval/reward"] for m in per.values()) / n
+    out["eval/laps"] = sum(m["eval/laps"] for m in per.values()) / n
+    out["eval/laps_min"] = min(m["eval/laps"] for m in per.values())
+    out["eval/lap_time"] = sum(m["eval/lap_time"] for m in per.values()) / n  # NaN if any track has none
+    return out
+
+
 def validate(env: EnvBase, policy, episodes: int, max_steps: int) -> dict[str, float]:
     """Summers's protocol: deterministic policy, no noise, nothing stored, no updates."""
     rewards, laps, lap_times = [], [], []
@@ -330,14 +369,14 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     optim = agent.make_optimizers(cfg.algo, loss)
     buffer = make_buffer(cfg, run_dir)
     collector = make_collector(cfg, env, policy)
-    eval_env = make_eval_env(cfg)
+    eval_envs = make_eval_envs(cfg)
     meta = expected_meta(cfg, env, obs_keys)
     counters = Counters(next_eval=int(cfg.eval.every_episodes), next_ckpt=int(cfg.checkpoint.every_frames) or total,
                         next_log=int(cfg.logger.every_frames))
     if cfg.buffer.load:
         buffer.loads(str(cfg.buffer.load))
     if cfg.checkpoint.resume:
-        counters = _resume(cfg, ckpt_dir, meta, loss, optim, policy, collector, env, eval_env, buffer, run_dir)
+        counters = _resume(cfg, ckpt_dir, meta, loss, optim, policy, collector, env, eval_envs, buffer, run_dir)
     loggers = make_loggers(cfg.logger.backends, run_dir, cfg.logger.exp_name, cfg.logger.wandb_project, cfg.logger.wandb_mode)
     progress = Progress(total, enabled=bool(cfg.progress))
     multi = int(cfg.collector.num_workers) > 0
@@ -402,7 +441,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
 
             # periodic deterministic validation
             if counters.episodes >= counters.next_eval:
-                eval_metrics = validate(eval_env, policy, int(cfg.eval.episodes), int(cfg.eval.max_steps))
+                eval_metrics = validate_all(eval_envs, policy, int(cfg.eval.episodes), int(cfg.eval.max_steps))
                 log_metrics(loggers, eval_metrics, counters.frames)
                 progress.eval_text = f"reward {eval_metrics['eval/reward']:.2f}, laps {eval_metrics['eval/laps']:.1f}"
                 while counters.next_eval <= counters.episodes:
@@ -413,14 +452,14 @@ def train(cfg: DictConfig) -> dict[str, Any]:
                 every = int(cfg.checkpoint.every_frames) or total
                 while counters.next_ckpt <= counters.frames:  # advanced first: a resumed run does not save again at once
                     counters.next_ckpt += every
-                _save(cfg, ckpt_dir, meta, counters, loss, optim, policy, collector, env, eval_env, buffer, threads)
+                _save(cfg, ckpt_dir, meta, counters, loss, optim, policy, collector, env, eval_envs, buffer, threads)
         progress.update(counters.frames, (counters.frames - f_win) / max(time.perf_counter() - t_win, 1e-9), force=True)
         if cfg.buffer.save_at_end:
             save_dir_atomically(run_dir / "buffer_final", lambda d: buffer.dumps(str(d)))
     finally:
         progress.close()
         collector.shutdown()
-        for e in (env, eval_env):
+        for e in (env, *eval_envs.values()):
             if not e.is_closed:
                 e.close()
         for lg in loggers if "loggers" in locals() else []:
@@ -456,7 +495,7 @@ def _track_arg(track) -> str:
     return " ".join(str(t) for t in names)
 
 
-def _save(cfg, ckpt_dir, meta, counters, loss, optim, policy, collector, env, eval_env, buffer, threads) -> Path:
+def _save(cfg, ckpt_dir, meta, counters, loss, optim, policy, collector, env, eval_envs, buffer, threads) -> Path:
     path = checkpoint_path(ckpt_dir, counters.frames)
     buffer_dir = None
     if cfg.checkpoint.buffer:
@@ -470,7 +509,7 @@ def _save(cfg, ckpt_dir, meta, counters, loss, optim, policy, collector, env, ev
         "policy": policy.state_dict(),
         "rng": rng_state(),
         "collector": {} if multi else {"state": collector.state_dict(), "env": _sim_state(env)},
-        "eval_env": _sim_state(eval_env),
+        "eval_envs": {name: _sim_state(e) for name, e in eval_envs.items()},
         "buffer_dir": buffer_dir,
         "threads": threads,
         "config": OmegaConf.to_yaml(cfg),
@@ -480,7 +519,7 @@ def _save(cfg, ckpt_dir, meta, counters, loss, optim, policy, collector, env, ev
     return path
 
 
-def _resume(cfg, ckpt_dir, meta, loss, optim, policy, collector, env, eval_env, buffer, run_dir) -> Counters:
+def _resume(cfg, ckpt_dir, meta, loss, optim, policy, collector, env, eval_envs, buffer, run_dir) -> Counters:
     path = latest_checkpoint(ckpt_dir) if cfg.checkpoint.resume == "latest" else Path(cfg.checkpoint.resume)
     if path is None:
         raise CheckpointError(f"checkpoint.resume=latest but {ckpt_dir} holds no checkpoint")
@@ -499,7 +538,12 @@ def _resume(cfg, ckpt_dir, meta, loss, optim, policy, collector, env, eval_env, 
         print("[torcsrl] this env has no get_sim_state: the in-flight episode restarts (exact resume needs it)", file=sys.stderr)
     else:
         print("[torcsrl] resuming a multi-process collector: worker episodes restart (exact resume needs num_workers=0)", file=sys.stderr)
-    _set_sim_state(eval_env, ck["eval_env"])
+    saved = ck["eval_envs"] if "eval_envs" in ck else {"": ck["eval_env"]}  # "eval_env": before per-track validation
+    if set(saved) != set(eval_envs):
+        raise CheckpointError(f"checkpoint {path} validated on {sorted(saved) if list(saved) != [''] else 'one env'}, this config on "
+                              f"{sorted(eval_envs) if list(eval_envs) != [''] else 'one env'} (eval.per_track / the track list changed)")
+    for name, e in eval_envs.items():
+        _set_sim_state(e, saved[name])
     if ck["buffer_dir"]:
         try:
             buffer.loads(str(path.parent / ck["buffer_dir"]))
