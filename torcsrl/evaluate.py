@@ -180,12 +180,12 @@ def make_cell_env(policy: Policy, track: str, surface: str | None, deg: Degradat
     env = make_env(track=track, surface=surface, lap_limit=int(laps), max_steps=int(max_steps), **kw)
     if deg.clean:
         return env, None
-    from torchrl.envs import Compose, TransformedEnv
+    from torchrl.envs import Compose
 
-    from torcsrl.transforms import KeepClean
+    from torcsrl.transforms import KeepClean, LeanTransformedEnv
 
     transform = Compose(KeepClean(["state"]), deg.build())
-    return TransformedEnv(env, transform), transform
+    return LeanTransformedEnv(env, transform), transform
 
 
 def default_max_steps(track_length_m: float, laps: int, dt: float = 0.02, min_speed_ms: float = 10.0,

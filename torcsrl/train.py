@@ -43,7 +43,7 @@ import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from tensordict import TensorDict, TensorDictBase
 from torchrl.collectors import MultiSyncCollector
-from torchrl.envs import Compose, EnvBase, InitTracker, RewardSum, TransformedEnv
+from torchrl.envs import Compose, EnvBase, InitTracker, RewardSum
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torcsrl import agents
@@ -109,7 +109,17 @@ def make_train_env(cfg: DictConfig, worker: int = -1) -> EnvBase:
         override["track"] = tracks[max(worker, 0) % len(tracks)]
     base = build_base_env(cfg.env.name, env_kwargs(cfg.env, **override))
     transforms = [*observation_transforms(cfg, base), *([InitTracker(), RewardSum()] if worker >= 0 else [])]
-    return TransformedEnv(base, Compose(*transforms)) if transforms else base
+    return _transformed(base, transforms)
+
+
+def _transformed(base: EnvBase, transforms: list) -> EnvBase:
+    """``base`` under ``transforms`` (:class:`~torcsrl.transforms.LeanTransformedEnv`: no per-step input
+    copy for observation-only stacks), or ``base`` itself when there are none."""
+    if not transforms:
+        return base
+    from torcsrl.transforms import LeanTransformedEnv
+
+    return LeanTransformedEnv(base, Compose(*transforms))
 
 
 def observation_transforms(cfg: DictConfig, base: EnvBase, seed: int | None = None) -> list:
@@ -181,8 +191,7 @@ def make_eval_envs(cfg: DictConfig) -> dict[str, EnvBase]:
 
 def _eval_env(cfg: DictConfig, kwargs: dict) -> EnvBase:
     base = build_base_env(cfg.env.name, kwargs)
-    ts = observation_transforms(cfg, base)
-    return TransformedEnv(base, Compose(*ts)) if ts else base
+    return _transformed(base, observation_transforms(cfg, base))
 
 
 # ---------------------------------------------------------------------------------------

@@ -28,6 +28,7 @@ from ._base import (
     Degradation,
     DegradedEnv,
     KeepClean,
+    LeanTransformedEnv,
     derive_seed,
     seed_degradations,
 )
@@ -79,6 +80,7 @@ __all__ = [
     "Degradation",
     "DegradedEnv",
     "KeepClean",
+    "LeanTransformedEnv",
     "SENSOR_KEYS",
     "derive_seed",
     "seed_degradations",

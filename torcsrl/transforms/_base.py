@@ -49,6 +49,7 @@ __all__ = [
     "Degradation",
     "DegradedEnv",
     "KeepClean",
+    "LeanTransformedEnv",
     "SENSOR_KEYS",
     "derive_seed",
     "seed_degradations",
@@ -601,8 +602,41 @@ def seed_degradations(obj: EnvBase | Transform, seed: int) -> int:
     return len(ts)
 
 
-class DegradedEnv(TransformedEnv):
-    """A ``TransformedEnv`` whose ``set_seed`` also seeds its degradations.
+def _input_untouched(t: Transform) -> bool:
+    """True when ``t`` (a transform or a Compose) can neither rewrite a step's input tensordict (no
+    inverse keys, no ``inv``/``_inv_call`` of its own) nor read it (no ``_step`` of its own): an
+    observation transform such as a degradation, ``KeepClean`` or TorchRL's ``ObservationNorm``."""
+    if isinstance(t, Compose):
+        return all(_input_untouched(c) for c in t.transforms)
+    cls = type(t)
+    return (not t.in_keys_inv and cls._inv_call is Transform._inv_call and cls.inv is Transform.inv
+            and cls._step is Transform._step)
+
+
+class LeanTransformedEnv(TransformedEnv):
+    """TorchRL's ``TransformedEnv``, without its defensive copy of each step's input when nothing needs it.
+
+    ``TransformedEnv._step`` clones the step's input for the inverse transforms before stepping the
+    base env. When every transform of the stack only transforms observations
+    (:func:`_input_untouched`), the clone protects nothing; this class then steps the base env on
+    the input itself, and otherwise (inverse transforms, transforms with a ``_step`` of their own such
+    as ``RewardSum``, partial steps) defers to ``TransformedEnv``. Same results (tested), ~30 us less
+    per step (race env, one car: 373 -> 341 us with an empty stack, 439 -> 400 with one degradation).
+    """
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if "_step" in tensordict.keys() or not _input_untouched(self.transform):
+            return super()._step(tensordict)
+        next_preset = tensordict.get("next", None)
+        next_tensordict = self.base_env._step(tensordict)
+        if next_preset is not None:  # as TransformedEnv: entries already under "next" are kept
+            next_tensordict.update(next_preset.exclude(*next_tensordict.keys(True, True)))
+        self.base_env._complete_done(self.base_env.full_done_spec, next_tensordict)
+        return self.transform._step(tensordict, next_tensordict)
+
+
+class DegradedEnv(LeanTransformedEnv):
+    """A ``TransformedEnv`` (:class:`LeanTransformedEnv`) whose ``set_seed`` also seeds its degradations.
 
     ``TransformedEnv.set_seed`` seeds only the base env. This subclass also seeds every
     :class:`Degradation` in its stack from the same seed, so ``env.set_seed(s)`` — including the
