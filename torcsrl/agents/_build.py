@@ -180,8 +180,8 @@ def precision_context(precision: str, device: torch.device):
     """The autocast context of ``algo.precision`` for losses computed on ``device``.
 
     ``bfloat16``: mixed precision — matmuls and convolutions run in bfloat16 with float32
-    accumulation; weights, gradients, optimiser state, target networks, the critics' scalar Q head
-    and the losses stay float32. Fast only where the hardware has bfloat16 units (x86 AVX512-BF16 or
+    accumulation; weights (online and target), gradients, optimiser state, the critics' output
+    layers (Q values, D4PG logits) and the losses stay float32. Fast only where the hardware has bfloat16 units (x86 AVX512-BF16 or
     AMX, recent GPUs); elsewhere it is slower than float32.
     """
     if precision not in PRECISIONS:
