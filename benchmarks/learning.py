@@ -46,23 +46,25 @@ def run_seed(env: str, algo: str, seed: int, budget: int, chunk: int, overrides:
         r = train(cfg)
         wall += time.perf_counter() - t
         frames = r["frames"]
-        from torcsrl.train import make_eval_env, validate  # the same deterministic validation as in training
+        from torcsrl.train import make_eval_envs, validate_all  # the same deterministic validation as in training
         import torch
 
         from torcsrl import agents
         from torcsrl.utils.checkpoint import load_checkpoint
 
         ck = load_checkpoint(r["checkpoint"])
-        env_v = make_eval_env(cfg)
+        envs_v = make_eval_envs(cfg)
+        env_v = next(iter(envs_v.values()))
         ag = agents.get(cfg.algo.name)
         keys = list(cfg.obs_keys or cfg.env.sensors)
         actor = ag.make_actor(cfg.algo, env_v, keys)
         actor.load_state_dict({k[len("actor_network_params."):]: v for k, v in ck["loss"].items() if k.startswith("actor_network_params.")}, strict=False)
         policy = ag.make_exploration(cfg.algo, actor, env_v, keys)
         with torch.no_grad():
-            ev = validate(env_v, policy, 1, int(cfg.eval.max_steps))
-        env_v.close()
-        laps = ev["eval/laps"]
+            ev = validate_all(envs_v, policy, 1, int(cfg.eval.max_steps))
+        for e in envs_v.values():
+            e.close()
+        laps = ev.get("eval/laps_min", ev["eval/laps"])  # with eval.per_track: the worst track
         if laps >= 1 and found["first_clean_lap"] is None:
             found["first_clean_lap"] = (frames, wall)
         if laps >= 10:
