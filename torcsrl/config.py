@@ -33,8 +33,10 @@ from omegaconf import DictConfig, OmegaConf
 
 __all__ = ["CONF_DIR", "ConfigError", "validate", "problems", "save_run_info", "write_metrics", "objective", "git_revision"]
 
-#: The Hydra config tree (``torcsrl.train`` uses ``config_path="../conf"``).
-CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
+#: The Hydra config tree: ``conf/`` at the top of the repository, reached through the package's
+#: ``torcsrl/conf`` link (a wheel holds a copy there), so ``python -m torcsrl.train`` finds it in a
+#: checkout, an editable install and a plain ``pip install`` alike.
+CONF_DIR = Path(__file__).resolve().parent / "conf"
 #: Top-level keys beyond conf/train.yaml's own and its groups' (set by presets).
 EXTRA_TOP_KEYS = {"optimized_metric": (str, type(None))}
 #: Config sections filled by groups (checked on their own below).

@@ -571,7 +571,7 @@ def _resume(cfg, ckpt_dir, meta, loss, optim, policy, collector, env, eval_envs,
 def main_entry() -> None:
     import hydra
 
-    @hydra.main(config_path="../conf", config_name="train", version_base="1.3")
+    @hydra.main(config_path="conf", config_name="train", version_base="1.3")  # torcsrl/conf -> conf/ (torcsrl.config.CONF_DIR)
     def main(cfg: DictConfig) -> float | None:
         from torcsrl.config import objective, save_run_info, validate, write_metrics
 
