@@ -420,6 +420,22 @@ class Camera:
             rgb[i], depth[i] = self._render_eye(eye, rc, remaps[i])
         return rgb, depth
 
+
+    def get_state(self) -> dict | None:
+        """The frame-rate state of :meth:`observe` (held frames and per-car call counts), or None before
+        the first call: with ``every > 1`` an exact resume needs it (the held frame is what the car sees)."""
+        if self._held is None:
+            return None
+        return {"rgb": self._held[0].copy(), "depth": self._held[1].copy(), "count": self._count.copy()}
+
+    def set_state(self, state: dict | None) -> None:
+        """Restore :meth:`get_state`."""
+        if state is None:
+            self._held = None
+            return
+        self._held = (np.array(state["rgb"], dtype=np.uint8, copy=True), np.array(state["depth"], dtype=np.float32, copy=True))
+        self._count = np.array(state["count"], dtype=np.int64, copy=True)
+
     def observe(self, pos, yaw=None, rot=None, reset=None, pitch=None, roll=None,
                 surface: str | Sequence[str | None] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Like :meth:`render_batch`, at the camera's frame rate: each car is rendered on every
@@ -614,6 +630,13 @@ class CarCameras:
         rgb, depth = self.camera.observe(pos, rot=fleet.rotation, reset=reset, surface=surface)
         out = {"pixels": rgb, "depth": depth}
         return {k: out[k] for k in self.keys}
+
+    def get_state(self) -> dict | None:
+        """The camera's frame-rate state (:meth:`Camera.get_state`), for an exact resume."""
+        return self.camera.get_state()
+
+    def set_state(self, state: dict | None) -> None:
+        self.camera.set_state(state)
 
     def close(self) -> None:
         """Release the renderer (the worlds go with the client)."""

@@ -253,7 +253,8 @@ class RaceCore:
     def get_state(self) -> dict[str, Any]:
         """Every piece of dynamic state, for an exact resume on CPU: the pybullet world (bodies'
         poses and velocities, as ``saveBullet`` bytes), the cars' drivetrain state, each car's
-        track and surface, the episode books, the last observation and the generator.
+        track and surface, the episode books, the last observation, the camera's held frames and
+        the generator.
         :meth:`set_state` on a core built with the same arguments continues bit for bit."""
         with tempfile.TemporaryDirectory() as tmp:
             f = os.path.join(tmp, "world.bullet")
@@ -262,7 +263,8 @@ class RaceCore:
         books = {k: np.array(getattr(self, k), copy=True) for k in _BOOK_FIELDS}
         return {"world": world, "fleet": self.fleet.get_state(), "books": books,
                 "surface_pick": list(self.surface_pick), "obs": {k: v.copy() for k, v in self.obs.items()},
-                "camera_slots": list(getattr(self.camera, "_worlds", {}) or {}), "rng": self.rng.bit_generator.state}
+                "camera_slots": list(getattr(self.camera, "_worlds", {}) or {}), "rng": self.rng.bit_generator.state,
+                "camera": None if self.camera is None else self.camera.get_state()}
 
     def set_state(self, state: Mapping[str, Any]) -> None:
         """Restore what :meth:`get_state` returned (same track list, cars, sensors and settings)."""
@@ -283,6 +285,8 @@ class RaceCore:
         self.obs = {k: np.array(v, copy=True) for k, v in state["obs"].items()}
         self.rng.bit_generator.state = state["rng"]
         self.fleet.set_state(state["fleet"])
+        if self.camera is not None and "camera" in state:  # held frames (camera every > 1); absent in older checkpoints
+            self.camera.set_state(state["camera"])
 
     # ------------------------------------------------------------------ step
     def sanitize(self, action) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
