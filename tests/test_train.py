@@ -80,6 +80,19 @@ def test_smoke_pixels_with_drq_shift(tmp_path):
     assert r["bytes_per_transition"] == 3 * 32 * 32 + 119
 
 
+@pytest.mark.parametrize("algo", ["td3", "d4pg"])
+def test_smoke_bfloat16_updates_with_pixels(tmp_path, algo):
+    """algo.precision=bfloat16 through the whole loop (CNN encoder + vectors): finite losses, float32 checkpoint."""
+    r = train(cfg_for(f"algo={algo}", f"run_dir={tmp_path}", "total_frames=200", "env.sensors=[rangefinder,state,pixels]",
+                      "algo.encoder.augment_shift=2", "checkpoint.buffer=false", "algo.precision=bfloat16",
+                      "algo.policy_delay=1"))  # an actor step before every log
+    assert r["updates"] > 0 and math.isfinite(r["loss/qvalue"])
+    actor = read_csv_metric(tmp_path, "loss/actor")
+    assert actor and all(math.isfinite(v) for _, v in actor)
+    ck = load_checkpoint(r["checkpoint"])
+    assert all(v.dtype == torch.float32 for k, v in ck["loss"].items() if torch.is_floating_point(v))
+
+
 def test_multisync_collector_two_workers_on_their_own_tracks(tmp_path):
     r = train(cfg_for("algo=td3", f"run_dir={tmp_path}", "total_frames=200", "collector.num_workers=2",
                       "collector.worker_tracks=[stadium,oval]", "checkpoint.buffer=false"))
