@@ -255,6 +255,7 @@ def validate_all(envs: dict[str, EnvBase], policy, episodes: int, max_steps: int
     return out
 
 
+@torch.no_grad()
 def validate(env: EnvBase, policy, episodes: int, max_steps: int) -> dict[str, float]:
     """Summers's protocol: deterministic policy, no noise, nothing stored, no updates."""
     rewards, laps, lap_times = [], [], []
