@@ -181,8 +181,8 @@ def precision_context(precision: str, device: torch.device):
 
     ``bfloat16``: mixed precision — matmuls and convolutions run in bfloat16 with float32
     accumulation; weights (online and target), gradients, optimiser state, the critics' output
-    layers (Q values, D4PG logits) and the losses stay float32. Fast only where the hardware has bfloat16 units (x86 AVX512-BF16 or
-    AMX, recent GPUs); elsewhere expect it to be slower than float32.
+    layers (Q values, D4PG logits) and the losses stay float32. Fast only where the hardware has
+    bfloat16 units (x86 AVX512-BF16 or AMX, recent GPUs); elsewhere expect it to be slower.
     """
     if precision not in PRECISIONS:
         raise ValueError(f"algo.precision={precision!r} is not known; allowed: {', '.join(PRECISIONS)}")

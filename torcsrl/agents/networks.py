@@ -228,6 +228,19 @@ def ensemble_linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -
     return torch.baddbmm(bias, x, weight)
 
 
+def _addmm(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+    return torch.addmm(bias, x, weight)
+
+
+def _in_weight_dtype(layer, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+    """``layer(x, weight, bias)`` in the weights' dtype: under bfloat16 autocast (``algo.precision``) the
+    critics' output layer still computes Q values and logits in float32."""
+    if x.dtype == weight.dtype:
+        return layer(x, weight, bias)
+    with torch.autocast(x.device.type, enabled=False):
+        return layer(x.to(weight.dtype), weight, bias)
+
+
 class Critic(nn.Module):
     """Q(s, a) ensemble: encoder(s) ++ a -> E fused MLPs -> ``[E, B, out_dim]``.
 
@@ -248,15 +261,10 @@ class Critic(nn.Module):
         *obs, action = inputs
         x = torch.cat([self.encoder(*obs), action], -1)
         x = x.expand(self.num_nets, *x.shape)
-        last = len(self.layers) - 1
-        for i, layer in enumerate(self.layers):  # EnsembleLinear.forward, inlined
-            if i == last and x.dtype != layer.weight.dtype:  # bfloat16 autocast: the output head stays float32
-                with torch.autocast(x.device.type, enabled=False):
-                    return ensemble_linear(x.to(layer.weight.dtype), layer.weight, layer.bias)
-            x = ensemble_linear(x, layer.weight, layer.bias)
-            if i < last:
-                x = x.relu_()
-        return x
+        *hidden, head = self.layers
+        for layer in hidden:  # EnsembleLinear.forward, inlined
+            x = ensemble_linear(x, layer.weight, layer.bias).relu_()
+        return _in_weight_dtype(ensemble_linear, x, head.weight, head.bias)
 
     def member(self, *inputs: torch.Tensor, index: int = 0) -> torch.Tensor:
         """Member ``index`` alone, with DETACHED weights (for the actor loss): ``[B, out_dim]``.
@@ -267,16 +275,10 @@ class Critic(nn.Module):
         with torch.no_grad():
             feat = self.encoder(*obs)
         x = torch.cat([feat, action], -1)
-        last = len(self.layers) - 1
-        for i, layer in enumerate(self.layers):
-            w, b = layer.weight[index].detach(), layer.bias[index].detach()
-            if i == last and x.dtype != w.dtype:  # bfloat16 autocast: the output head stays float32
-                with torch.autocast(x.device.type, enabled=False):
-                    return torch.addmm(b, x.to(w.dtype), w)
-            x = torch.addmm(b, x, w)
-            if i < last:
-                x = x.relu_()
-        return x
+        *hidden, head = self.layers
+        for layer in hidden:
+            x = torch.addmm(layer.bias[index].detach(), x, layer.weight[index].detach()).relu_()
+        return _in_weight_dtype(_addmm, x, head.weight[index].detach(), head.bias[index].detach())
 
 
 def random_shift(img: torch.Tensor, pad: int, generator: torch.Generator | None = None) -> torch.Tensor:

@@ -420,7 +420,6 @@ class Camera:
             rgb[i], depth[i] = self._render_eye(eye, rc, remaps[i])
         return rgb, depth
 
-
     def get_state(self) -> dict | None:
         """The frame-rate state of :meth:`observe` (held frames and per-car call counts), or None before
         the first call: with ``every > 1`` an exact resume needs it (the held frame is what the car sees)."""
