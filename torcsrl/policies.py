@@ -310,11 +310,14 @@ class ExpertPolicy(Policy):
     Args:
         mu_margin: fraction of the road's grip the expert's speed profile uses.
         vehicle: vehicle parameter file (must be the env's).
+        state_key: where the raw (un-normalised) ``state`` is read; ``"state_clean"`` under a
+            :class:`~torcsrl.transforms.KeepClean` when the policy's ``state`` is scaled or degraded
+            (the demonstration writer does this).
     """
 
     name = "expert"
 
-    def __init__(self, mu_margin: float = 0.85, vehicle: str = "default") -> None:
+    def __init__(self, mu_margin: float = 0.85, vehicle: str = "default", state_key: str = "state") -> None:
         from torcsrl.envs import expert as _expert
         from torcsrl.envs.vehicle import VehicleParams
 
@@ -322,6 +325,7 @@ class ExpertPolicy(Policy):
         self.mu_margin = float(mu_margin)
         self.spec = "expert"
         self.obs_keys = ("state",)
+        self.state_key = state_key
         self.env_overrides = {"sensors": ("state",)}
         self.fingerprint = _code_fingerprint(ExpertPolicy, _expert)
         self._drivers: dict[tuple[str, str], Any] = {}
@@ -344,7 +348,7 @@ class ExpertPolicy(Policy):
         self._prev_yaw: float | None = None
 
     def _car(self, td: TensorDictBase) -> SimpleNamespace:
-        st = td.get("state").reshape(-1).tolist()
+        st = td.get(self.state_key).reshape(-1).tolist()
         s = float(td.get(("info", "distFromStart")).reshape(-1)[0])
         t = self.track
         s = s % t.length

@@ -186,6 +186,7 @@ def make_eval_envs(cfg: DictConfig) -> dict[str, EnvBase]:
 
     spec = kwargs.get("track", inspect.signature(RaceCore).parameters["track"].default)
     names = list(dict.fromkeys(tracks.resolve(list(spec) if isinstance(spec, (list, tuple)) else spec)))
+    kwargs.pop("procedural", None)  # one env per NAMED track: no pool of generated tracks beside it
     return {name: _eval_env(cfg, {**kwargs, "track": name}) for name in names}
 
 
@@ -209,6 +210,50 @@ def make_buffer(cfg: DictConfig, run_dir: Path) -> ReplayBuffer:
     return ReplayBuffer(int(b.size), int(cfg.algo.batch_size), list(cfg.obs_keys or cfg.env.sensors), streams=streams(cfg),
                         n_steps=int(cfg.algo.n_steps), gamma=float(cfg.algo.gamma), storage=str(b.storage),
                         path=b.path or Path(run_dir) / "buffer", prioritized=bool(b.prioritized), alpha=float(b.alpha), beta=float(b.beta))
+
+
+def make_demos(cfg: DictConfig, env: EnvBase, run_dir: Path) -> ReplayBuffer | None:
+    """The demonstrations this run learns from (:mod:`torcsrl.demos`), or None.
+
+    ``demos.path``: a folder written by ``python -m torcsrl.demos``; else ``demos.frames > 0`` writes that many
+    DART frames of the expert in this run's env into ``<run_dir>/demos`` (once: a resumed run reuses them).
+    Refused (one line) when their observation layout or pipeline differs from this run's."""
+    d = cfg.get("demos")
+    if d is None or (not d.path and int(d.frames) <= 0):
+        return None
+    from torcsrl.demos import load_demos, pipeline_record, write_demos
+
+    if cfg.buffer.prioritized:
+        raise ValueError("demos with buffer.prioritized=true are not supported (the demo rows have no priorities); use one or the other")
+    path = Path(d.path) if d.path else Path(run_dir) / "demos"
+    if not d.path and not (path / "demos.json").is_file():
+        save_dir_atomically(path, lambda tmp: write_demos(cfg, tmp))
+    return load_demos(path, pipeline_record(cfg, env), int(cfg.algo.batch_size), n_steps=int(cfg.algo.n_steps), gamma=float(cfg.algo.gamma))
+
+
+def sample_batch(buffer: ReplayBuffer, demos: ReplayBuffer | None, n_demo: int):
+    """A training batch: all from ``buffer``, or (RLPD's symmetric sampling) ``n_demo`` demonstration rows
+    LAST after the online ones; every row then carries ``expert_action`` (the online rows their own action)."""
+    if demos is None or n_demo <= 0:
+        return buffer.sample()
+    on = buffer.sample(buffer.batch_size - n_demo)
+    on.set("expert_action", on.get("action"))
+    return torch.cat([on, demos.sample(n_demo)], 0)
+
+
+def pretrain(agent, hot, loss, optim, target_updater, demos: ReplayBuffer, bc_steps: int, critic_steps: int, precision: str) -> dict:
+    """Behaviour-clone the actor on the demonstrations, then fit the critic to it (actor frozen), targets synced."""
+    from torcsrl.agents._build import bc_step
+
+    out = {}
+    for _ in range(int(bc_steps)):
+        out["loss/bc"] = bc_step(loss, optim, demos.sample(), precision)
+    with torch.no_grad():  # targets start as the pre-trained actor
+        for tgt, src in zip(*target_updater._lists):
+            tgt.copy_(src)
+    for i in range(int(critic_steps)):
+        out.update(agent.update(hot, loss, optim, target_updater, demos.sample(), i, actor=False))
+    return out
 
 
 def make_collector(cfg: DictConfig, env: EnvBase, policy) -> StepCollector | MultiSyncCollector:
@@ -291,6 +336,7 @@ class Counters:
     next_eval: int = 0  # validate when episodes >= next_eval
     next_ckpt: int = 0  # checkpoint when frames >= next_ckpt
     next_log: int = 0  # log when frames >= next_log
+    pretrained: bool = False  # demonstration pre-training (demos.pretrain_steps, critic_pretrain_steps) done
 
 
 def _stateful_transforms(env: EnvBase) -> list:
@@ -361,6 +407,10 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     from torcsrl.config import validate as check_config
 
     check_config(cfg)
+    if cfg.algo.name in agents.IMITATION:  # BC / DAgger: no critic, no collector (torcsrl/imitation.py)
+        from torcsrl.imitation import train as imitate
+
+        return imitate(cfg)
     run_dir = _run_dir(cfg)
     run_dir.mkdir(parents=True, exist_ok=True)
     ckpt_dir = run_dir / "checkpoints"
@@ -378,6 +428,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     policy = agent.make_exploration(cfg.algo, actor, env, obs_keys)
     optim = agent.make_optimizers(cfg.algo, loss)
     buffer = make_buffer(cfg, run_dir)
+    demos = make_demos(cfg, env, run_dir)
     collector = make_collector(cfg, env, policy)
     eval_envs = make_eval_envs(cfg)
     meta = expected_meta(cfg, env, obs_keys)
@@ -395,15 +446,26 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     # plain values for the hot loop (an OmegaConf lookup costs ~10 us)
     hot = plain(cfg.algo)
     warmup, batch_size, utd = int(cfg.learner.warmup_frames), int(cfg.algo.batch_size), float(cfg.learner.utd_ratio)
-    prioritized = bool(cfg.buffer.prioritized)
+    n_demo = int(round(batch_size * float(cfg.demos.ratio))) if demos is not None else 0
     last: dict[str, Any] = {}
+    hot.n_demo, hot.bc_weight = n_demo, float(cfg.demos.bc_weight) if demos is not None else 0.0
+    if demos is not None and not counters.pretrained:
+        last = pretrain(agent, hot, loss, optim, target_updater, demos, int(cfg.demos.pretrain_steps), int(cfg.demos.critic_pretrain_steps),
+                        str(cfg.algo.precision))
+        counters.pretrained = True
+    prioritized = bool(cfg.buffer.prioritized)
     eval_metrics: dict[str, float] = {}
     t_start, cpu_start = time.perf_counter(), time.process_time()
+    max_wall_s = 60.0 * float(cfg.max_minutes) if cfg.get("max_minutes") else 0.0  # the loop's budget (demos and pre-training come before)
     t_win, f_win, u_win = t_start, counters.frames, counters.updates
     ep_rewards, ep_laps = [], []
     try:
         batches = iter(collector)
         while counters.frames < total:
+            if max_wall_s and time.perf_counter() - t_start > max_wall_s:  # the wall-clock budget: stop with a checkpoint
+                print(f"[torcsrl] wall-clock budget of {cfg.max_minutes} min reached at {counters.frames} steps", file=sys.stderr)
+                _save(cfg, ckpt_dir, meta, counters, loss, optim, policy, collector, env, eval_envs, buffer, threads)
+                break
             # collect -> extend
             data = next(batches)
             done = data["next", "done"].squeeze(-1)
@@ -417,10 +479,10 @@ def train(cfg: DictConfig) -> dict[str, Any]:
             counters.frames += data.numel()
 
             # update (configurable update-to-data ratio after the warm-up)
-            if counters.frames >= warmup and len(buffer) >= batch_size:
+            if counters.frames >= warmup and len(buffer) >= batch_size - n_demo:
                 counters.owed_updates += utd * data.numel()
                 for _ in range(int(counters.owed_updates)):
-                    batch = buffer.sample()
+                    batch = sample_batch(buffer, demos, n_demo)
                     last = agent.update(hot, loss, optim, target_updater, batch, counters.updates)
                     if prioritized:
                         buffer.update_tensordict_priority(batch)

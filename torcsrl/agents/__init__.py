@@ -6,7 +6,9 @@ from __future__ import annotations
 import importlib
 from types import ModuleType
 
-ALGOS = ("ddpg", "td3", "d4pg")
+ALGOS = ("ddpg", "td3", "d4pg", "bc", "dagger")
+#: Imitation baselines (no critic; trained by torcsrl.imitation.train from expert demonstrations).
+IMITATION = ("bc", "dagger")
 
 
 def get(name: str) -> ModuleType:

@@ -190,13 +190,64 @@ def precision_context(precision: str, device: torch.device):
     return contextlib.nullcontext() if dtype is None else torch.autocast(device_type=torch.device(device).type, dtype=dtype)
 
 
+def actor_regularisers(loss: LossModule, batch, action: torch.Tensor, q: torch.Tensor, la: torch.Tensor, reg: Any) -> tuple[torch.Tensor, dict]:
+    """The actor loss with its optional terms (``reg``: the ``algo`` config; ``reg.n_demo``: the last rows of
+    the batch that are demonstrations, with their labels under ``expert_action``).
+
+    * **TD3+BC** (Fujimoto & Gu 2021), ``bc_weight`` > 0: ``-Q / mean|Q| + bc_weight * |mu(s) - a*|^2`` over
+      the demonstration rows (``bc_weight`` 0.4 is their alpha = 2.5).
+    * **CAPS** (Mysore et al. 2021): temporal ``smooth.temporal * |mu(s) - mu(s')|^2`` and spatial
+      ``smooth.spatial * |mu(s) - mu(s + N(0, smooth.spatial_sigma^2))|^2`` (image observations are not
+      perturbed).
+    Returns (loss, metrics): ``loss/bc``, ``loss/smooth_temporal``, ``loss/smooth_spatial`` when active.
+    """
+    out: dict[str, torch.Tensor] = {}
+    bc_w = float(getattr(reg, "bc_weight", 0.0) or 0.0)
+    n_demo = int(getattr(reg, "n_demo", 0) or 0)
+    if bc_w > 0 and n_demo > 0:
+        target = batch.get("expert_action")[-n_demo:]
+        bc = (action[-n_demo:].float() - target).pow(2).sum(-1).mean()
+        la = la / q.abs().mean().clamp_min(1e-6) + bc_w * bc
+        out["loss/bc"] = bc.detach()
+    sm = getattr(reg, "smooth", None)
+    if sm is not None and (float(sm.temporal) > 0 or float(sm.spatial) > 0):
+        actor_net = loss.actor_network
+        if float(sm.temporal) > 0:
+            nxt = loss.obs(batch, nxt=True)
+            lt = (actor_net(*nxt).float() - action.float()).pow(2).sum(-1).mean()
+            la = la + float(sm.temporal) * lt
+            out["loss/smooth_temporal"] = lt.detach()
+        if float(sm.spatial) > 0:
+            obs = loss.obs(batch)
+            img = loss.obs.image_keys
+            noisy = [x if (k in img or not x.is_floating_point()) else x + float(sm.spatial_sigma) * torch.randn_like(x)
+                     for k, x in zip(loss.obs.keys, obs)]
+            ls = (actor_net(*noisy).float() - action.float()).pow(2).sum(-1).mean()
+            la = la + float(sm.spatial) * ls
+            out["loss/smooth_spatial"] = ls.detach()
+    return la, out
+
+
+def bc_step(loss: LossModule, optim: dict, batch, precision: str = "float32") -> torch.Tensor:
+    """One behaviour-cloning step of the actor: ``|mu(s) - a*|^2`` on a demonstration batch."""
+    with precision_context(precision, batch.device or "cpu"):
+        action = loss.actor_network(*loss.obs(batch))
+    bc = (action.float() - batch.get("expert_action")).pow(2).sum(-1).mean()
+    optim["actor"].zero_grad(set_to_none=True)
+    bc.backward()
+    _step(optim["actor"])
+    return bc.detach()
+
+
 def update(loss: LossModule, optim: dict, updater: SoftUpdate, batch, n_update: int, policy_delay: int, grad_clip: float | None,
-           precision: str = "float32") -> dict:
+           precision: str = "float32", reg: Any = None, actor: bool = True) -> dict:
     """One gradient step: critic every call; actor and targets every ``policy_delay`` calls.
 
     Returns tensors (``loss/...``; no ``.item()``: the loop reads them when it logs). When the batch
     comes from a prioritized buffer (it has ``priority_weight``), the per-sample priority is written
-    into it. ``precision``: ``"float32"`` or ``"bfloat16"`` (:func:`precision_context`).
+    into it. ``precision``: ``"float32"`` or ``"bfloat16"`` (:func:`precision_context`). ``reg``: the
+    ``algo`` config, for the actor's optional terms (:func:`actor_regularisers`); ``actor=False``
+    updates the critic only (critic pre-training on demonstrations).
     """
     prioritized = loss.tensor_keys.priority_weight in batch.keys()
     with precision_context(precision, batch.device or "cpu"):
@@ -209,9 +260,13 @@ def update(loss: LossModule, optim: dict, updater: SoftUpdate, batch, n_update: 
     if prioritized:
         batch.set(loss.tensor_keys.priority, meta.pop("td_error").unsqueeze(-1))
     out = {"loss/qvalue": lq.detach(), **{f"loss/{k}": v for k, v in meta.items()}}
-    if n_update % policy_delay == 0:
+    if actor and n_update % policy_delay == 0:
         with precision_context(precision, batch.device or "cpu"):
             la, meta_a = loss._actor_loss(batch)
+            action, q = meta_a.pop("_action"), meta_a.pop("_q")
+            if reg is not None:
+                la, meta_r = actor_regularisers(loss, batch, action, q, la, reg)
+                meta_a.update({k.split("/", 1)[1]: v for k, v in meta_r.items()})
         optim["actor"].zero_grad(set_to_none=True)
         la.backward()
         if grad_clip:

@@ -44,7 +44,7 @@ def make_optimizers(cfg: Any, loss):
     return _build.optimizers(cfg, loss)
 
 
-def update(cfg: Any, loss, optim, updater, batch, n_update: int) -> dict:
+def update(cfg: Any, loss, optim, updater, batch, n_update: int, actor: bool = True) -> dict:
     """Critic, actor and targets every step."""
     return _build.update(loss, optim, updater, batch, n_update, policy_delay=1, grad_clip=cfg.grad_clip,
-                         precision=cfg.precision)
+                         precision=cfg.precision, reg=cfg, actor=actor)

@@ -26,6 +26,7 @@ from gymnasium.utils import EzPickle
 
 from torcsrl.envs import surfaces as _surf
 from torcsrl.envs import tracks as _tracks
+from torcsrl.envs.tracks.procedural import ProceduralSpec
 from torcsrl.envs.rewards import REWARD_TERMS, Reward
 from torcsrl.envs.sensors import (MS_TO_KMH, RANGEFINDER_ANGLES_DEG, RANGE_M, STATE_BOUNDS, STATE_SLOTS, Rangefinder,
                                   check_sensors)
@@ -77,6 +78,10 @@ class RaceCore:
         control_hz, substeps: control rate [Hz] and physics substeps per control step.
         rangefinder_angles_deg: beam angles [deg]; ``rangefinder_range_m``: beam range [m].
         camera: keyword arguments for :class:`torcsrl.envs.camera.Camera` (pixels/depth).
+        procedural: ``{seeds: [lo, hi], pool: N, share: p, generator: proc|gen}``: add a pool of N
+            generated tracks (seeds drawn from ``[lo, hi)`` by a stream seeded with ``seed``); each
+            episode drives a pool track with probability ``share``, else a named track
+            (:mod:`torcsrl.envs.tracks.procedural`). ``None``: named tracks only.
         seed: seed of the env's random generator (tracks, surfaces, spawn).
     """
 
@@ -103,6 +108,7 @@ class RaceCore:
         rangefinder_angles_deg: Sequence[float] = RANGEFINDER_ANGLES_DEG,
         rangefinder_range_m: float = RANGE_M,
         camera: Mapping[str, Any] | None = None,
+        procedural: Mapping[str, Any] | None = None,
         seed: int | None = None,
     ) -> None:
         self.sensors = check_sensors(sensors)
@@ -118,6 +124,11 @@ class RaceCore:
             raise ValueError(f"lap_limit must be a positive integer or None, got {lap_limit!r}")
         self.n = int(num_cars)
         self.track_names = _tracks.resolve(_as_list(track))
+        #: Named tracks first, then the procedural pool (slots n_named ...).
+        self.n_named = len(self.track_names)
+        self.procedural = ProceduralSpec.from_config(procedural)
+        if self.procedural is not None:
+            self.track_names = self.track_names + self.procedural.names(seed)
         self.surfaces = _as_list(surface)
         for s in self.surfaces:
             if s is not None and s not in _surf.ROAD_SURFACES:
@@ -218,7 +229,11 @@ class RaceCore:
             return
         k = len(idx)
         rng = self.rng
-        slots = rng.integers(len(self._geometry), size=k) if len(self._geometry) > 1 else np.zeros(k, dtype=np.int64)
+        if self.procedural is not None:  # named tracks or the pool, then a track within
+            pick = rng.random(k) < self.procedural.share
+            slots = np.where(pick, self.n_named + rng.integers(self.procedural.pool, size=k), rng.integers(self.n_named, size=k))
+        else:
+            slots = rng.integers(len(self._geometry), size=k) if len(self._geometry) > 1 else np.zeros(k, dtype=np.int64)
         surf = [self.surfaces[j] for j in (rng.integers(len(self.surfaces), size=k) if len(self.surfaces) > 1 else np.zeros(k, dtype=int))]
         xy = np.zeros((k, 2))
         yaw = np.zeros(k)

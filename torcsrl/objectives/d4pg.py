@@ -153,7 +153,9 @@ class D4PGLoss(LossModule):
     # recurrent-mode contexts, ~20 us a call); the training step calls the ``_``-prefixed bodies.
     def actor_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
         """``-sum_j p_j(s, mu(s)) z_j`` with the critic's weights detached."""
-        return self._actor_loss(tensordict)
+        loss, meta = self._actor_loss(tensordict)
+        meta.pop("_action"), meta.pop("_q")
+        return loss, meta
 
     def value_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
         """Cross-entropy between the projected target distribution and the predicted one."""
@@ -166,7 +168,7 @@ class D4PGLoss(LossModule):
         q = (torch.softmax(logits, -1) * self.support).sum(-1)
         w = self._weights(tensordict)
         loss = -q.mean() if w is None else -(q * w).mean()
-        return loss, {"state_action_value_actor": q.detach().mean()}
+        return loss, {"state_action_value_actor": q.detach().mean(), "_action": action, "_q": q.detach()}
 
     def _value_loss(self, tensordict: TensorDictBase, td_error: bool) -> tuple[torch.Tensor, dict]:
         """``td_error``: also return the per-sample cross-entropy (the priority of prioritized replay)."""

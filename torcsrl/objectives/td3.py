@@ -152,7 +152,9 @@ class TD3Loss(LossModule):
     # recurrent-mode contexts, ~20 us a call); the training step calls the ``_``-prefixed bodies.
     def actor_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
         """``-Q1(s, mu(s))`` with the critic's weights detached: gradients reach the actor only."""
-        return self._actor_loss(tensordict)
+        loss, meta = self._actor_loss(tensordict)
+        meta.pop("_action"), meta.pop("_q")
+        return loss, meta
 
     def value_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
         """Sum over critics of the mean regression loss to the clipped double-Q target (and the per-sample TD error)."""
@@ -163,7 +165,8 @@ class TD3Loss(LossModule):
         action = self.actor_network(*obs)
         q = self.qvalue_network.member(*obs, action, index=0).squeeze(-1)
         loss = self._reduce(-q, self._weights(tensordict))
-        return loss, {"state_action_value_actor": q.detach().mean()}
+        # "_action", "_q": for the actor regularisers of torcsrl.agents._build.update (popped there, not logged)
+        return loss, {"state_action_value_actor": q.detach().mean(), "_action": action, "_q": q.detach()}
 
     def _target(self, tensordict: TensorDictBase, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         nxt = tensordict.get("next")

@@ -129,7 +129,7 @@ class ReplayBuffer:
 
     def __init__(self, capacity: int, batch_size: int, obs_keys: Sequence[str], *, streams: int = 1, n_steps: int = 1, gamma: float = 0.99,
                  storage: str = "ram", path: str | Path | None = None, prioritized: bool = False, alpha: float = 0.6, beta: float = 0.4,
-                 priority_key: str = "td_error"):
+                 priority_key: str = "td_error", extra_keys: Sequence[str] = ()):
         if storage not in ("ram", "disk"):
             raise ValueError(f"unknown buffer.storage {storage!r}; known: ram, disk")
         if storage == "disk" and path is None:
@@ -140,6 +140,9 @@ class ReplayBuffer:
         self.capacity = math.ceil(int(capacity) / self.streams) * self.streams
         self.batch_size = int(batch_size)
         self.obs_keys = list(obs_keys)
+        self.extra_keys = list(extra_keys)
+        self._row_keys = ("action", *self.extra_keys, "reward", *FLAGS)
+        self._done = 2 + len(self.extra_keys)  # where "done" sits in a step's non-observation tensors
         self.storage_kind, self.path = storage, None if path is None else Path(path)
         self.priority_key = priority_key
         self.lag = (self.n_steps - 1) * self.streams  # rows whose n-step window is still open
@@ -184,7 +187,7 @@ class ReplayBuffer:
         self._obs = [self._rows[k] for k in self.obs_keys]
         self._fin = [self._finals[k] for k in self.obs_keys]
         self._final = self._rows["final"]
-        self._leaves = [self._rows[k] for k in ("action", "reward", *FLAGS)]
+        self._leaves = [self._rows[k] for k in self._row_keys]
 
     def extend(self, data: TensorDictBase) -> None:
         """Add whole env steps: ``data`` holds ``streams x T`` transitions, time on the last batch dim when
@@ -195,12 +198,12 @@ class ReplayBuffer:
         steps = data.numel() // n
         nxt = data.get("next")
         get = [data.get(k) for k in self.obs_keys], [nxt.get(k) for k in self.obs_keys], \
-            [data.get("action"), *(nxt.get(k) for k in ("reward", *FLAGS))]
+            [data.get("action"), *(data.get(k) for k in self.extra_keys), *(nxt.get(k) for k in ("reward", *FLAGS))]
         # [streams, T, ...] views of every tensor (plain tensor ops: TensorDict reshapes cost ~0.1 ms each)
         obs, nobs, rest = ([x.reshape(n, steps, *x.shape[nb:]) for x in xs] for xs in get)
         if self._rows is None:
             row = TensorDict({k: o[:, 0] for k, o in zip(self.obs_keys, obs)}, batch_size=[n])
-            row.update({k: x[:, 0] for k, x in zip(("action", "reward", *FLAGS), rest)})
+            row.update({k: x[:, 0] for k, x in zip(self._row_keys, rest)})
             row.set("final", torch.full((n,), -1, dtype=torch.int32))
             self._allocate(row, TensorDict({k: o[:, 0] for k, o in zip(self.obs_keys, nobs)}, batch_size=[n]))
         for t in range(steps):
@@ -217,7 +220,7 @@ class ReplayBuffer:
             dst[p:p + n].copy_(x)
         final = self._final
         final[p:p + n] = -1
-        done = rest[2].reshape(n)
+        done = rest[self._done].reshape(n)
         if bool(done.any()):
             idx = done.nonzero().squeeze(-1)
             slots = (self.finals_written + torch.arange(idx.numel())) % self.rows
@@ -253,6 +256,8 @@ class ReplayBuffer:
         st = self._rows
         out = {k: o.index_select(0, rows) for k, o in zip(self.obs_keys, self._obs)}
         out["action"] = st["action"].index_select(0, rows)
+        for k in self.extra_keys:
+            out[k] = st[k].index_select(0, rows)
         if self.n_steps == 1:
             end = rows
             reward = st["reward"].index_select(0, rows)
@@ -302,6 +307,7 @@ class ReplayBuffer:
     def _meta(self) -> dict:
         return {"format": FORMAT, "version": VERSION, "capacity": self.capacity, "rows": self.rows, "streams": self.streams,
                 "n_steps": self.n_steps, "written": self.written, "finals_written": self.finals_written, "obs_keys": self.obs_keys,
+                "extra_keys": self.extra_keys,
                 "priorities": None if self.priorities is None else self.priorities.max}
 
     def dumps(self, path: str | Path) -> None:
@@ -327,6 +333,8 @@ class ReplayBuffer:
             raise ValueError(f"{path} holds a {meta.get('format')} v{meta.get('version')} buffer; this torcsrl reads {FORMAT} v{VERSION}")
         if meta["streams"] != self.streams or meta["obs_keys"] != self.obs_keys:
             raise ValueError(f"replay buffer {path} has {meta['streams']} streams of {meta['obs_keys']}; this run has {self.streams} of {self.obs_keys}")
+        if meta.get("extra_keys", []) != self.extra_keys:
+            raise ValueError(f"replay buffer {path} stores extra keys {meta.get('extra_keys', [])}; this buffer has {self.extra_keys}")
         if meta["written"] == 0:
             return
         rows = TensorDict.load_memmap(str(path / "rows"))

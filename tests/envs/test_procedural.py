@@ -1,0 +1,65 @@
+"""Procedural training distributions: pools of generated tracks in the race env, seed ranges kept apart."""
+
+from __future__ import annotations
+
+import pytest
+
+from torcsrl.envs import make_env
+from torcsrl.envs.tracks.procedural import HELDOUT_SEEDS, TRAIN_SEEDS, ProceduralSpec, heldout_names
+
+
+def test_pool_is_seeded_distinct_and_inside_the_training_range():
+    spec = ProceduralSpec.from_config({"seeds": [20_000, 20_050], "pool": 50, "generator": "gen"})
+    a, b = spec.track_seeds(0), spec.track_seeds(0)
+    assert a == b and len(set(a)) == 50 and all(20_000 <= s < 20_050 for s in a)
+    assert spec.track_seeds(1) != a  # another env seed, another order
+    assert spec.names(0)[0] == f"gen-{a[0]}"
+
+
+@pytest.mark.parametrize("cfg,match", [
+    ({"seeds": [0, 5000]}, "overlaps the held-out seed range"),
+    ({"seeds": [500, 600]}, "overlaps the held-out seed range"),
+    ({"seeds": [20_000, 20_000]}, "empty"),
+    ({"seeds": [20_000, 20_010], "pool": 11}, "exceeds the 10 seeds"),
+    ({"pool": 0}, "positive integer"),
+    ({"share": 1.5}, r"outside \[0, 1\]"),
+    ({"generator": "blob"}, "allowed: proc, gen"),
+    ({"seed": [1, 2]}, "unknown keys"),
+])
+def test_bad_specs_fail_with_one_line(cfg, match):
+    with pytest.raises(ValueError, match=match) as err:
+        ProceduralSpec.from_config(cfg)
+    assert "\n" not in str(err.value)
+
+
+def test_default_ranges_are_disjoint_and_heldout_names_stay_inside():
+    assert TRAIN_SEEDS[0] >= HELDOUT_SEEDS[1]
+    assert heldout_names(3, "gen") == ["gen-0", "gen-1", "gen-2"]
+    with pytest.raises(ValueError, match="held-out procedural seeds"):
+        heldout_names(10, start=HELDOUT_SEEDS[1] - 5)
+
+
+def test_env_draws_named_and_pool_tracks_per_episode_from_its_seed():
+    kw = dict(track="oval", procedural={"seeds": [30_000, 40_000], "pool": 4, "share": 0.5, "generator": "gen"}, start="random")
+    env = make_env(seed=3, **kw)
+    try:
+        names = env.core.track_names
+        assert names[0] == "oval" and len(names) == 5 and all(n.startswith("gen-") for n in names[1:])
+        drawn = []
+        for _ in range(16):
+            env.reset()
+            drawn.append(env.core.car_tracks[0].name)
+        assert "oval" in drawn and any(d.startswith("gen-") for d in drawn)
+        assert set(drawn) <= set(names)
+    finally:
+        env.close()
+    again = make_env(seed=3, **kw)
+    try:
+        assert again.core.track_names == names
+        redrawn = []
+        for _ in range(16):
+            again.reset()
+            redrawn.append(again.core.car_tracks[0].name)
+        assert redrawn == drawn
+    finally:
+        again.close()

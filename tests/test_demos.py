@@ -1,0 +1,142 @@
+"""Demonstrations (torcsrl/demos.py), their use in training (RLPD, TD3+BC, CAPS, pre-training) and BC / DAgger."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from torcsrl.demos import DemoError, load_demos, write_demos
+
+ROOT = Path(__file__).resolve().parents[1]
+CONF = str(ROOT / "conf")
+RACE = ["debug=smoke", "env.track=oval", "env.max_steps=200", "eval.max_steps=30", "threads=1"]
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    torch.set_num_threads(1)
+
+
+def cfg_for(*overrides: str):
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        return compose("train", overrides=[*RACE, *overrides])
+
+
+@pytest.fixture(scope="module")
+def demo_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demos") / "d"
+    write_demos(cfg_for("demos.sigma_max=0.3", "demos.episode_steps=150"), out, frames=240, seed=5)
+    return out
+
+
+def test_demos_store_the_executed_action_and_the_experts_label(demo_dir):
+    meta = json.loads((demo_dir / "demos.json").read_text())
+    assert meta["frames"] == 240 and meta["record"]["obs_layout"] == "rangefinder:19,state:11"
+    assert meta["stats"]["episodes"] >= 1  # 150-step episodes: at least one ended and restarted
+    cfg = cfg_for()
+    from torcsrl.demos import make_demo_env, pipeline_record
+
+    env = make_demo_env(cfg, 0)
+    try:
+        buf = load_demos(demo_dir, pipeline_record(cfg, env), 32)
+    finally:
+        env.close()
+    rows = buf[:]
+    assert len(buf) == 240
+    diff = (rows["action"] - rows["expert_action"]).abs()
+    assert diff.max() > 0.01  # DART noise was executed ...
+    assert rows["expert_action"].abs().max() <= 1.0 and rows["action"].abs().max() <= 1.0
+    assert rows["state"].abs().max() < 5  # ... and the observations are the policy's (scaled), not raw km/h
+    assert (rows["expert_action"][:, 1] > 0.5).float().mean() > 0.3  # the expert accelerates from the grid
+
+
+def test_noise_free_expert_stays_on_the_road(tmp_path):
+    out = write_demos(cfg_for("demos.sigma_max=0.0", "env.start=grid", "demos.episode_steps=400"), tmp_path / "clean", frames=300, seed=1)
+    stats = json.loads((out / "demos.json").read_text())["stats"]
+    assert stats["terminated"] == 0
+
+
+def test_demos_of_another_pipeline_are_refused_in_one_line(demo_dir):
+    cfg = cfg_for("env.normalize=false")
+    from torcsrl.demos import make_demo_env, pipeline_record
+
+    env = make_demo_env(cfg, 0)
+    try:
+        with pytest.raises(DemoError, match="normalize=True; this run has normalize=False") as err:
+            load_demos(demo_dir, pipeline_record(cfg, env), 32)
+    finally:
+        env.close()
+    assert "\n" not in str(err.value)
+    with pytest.raises(DemoError, match="not a demonstration folder"):
+        load_demos(demo_dir.parent, {}, 32)
+
+
+def test_training_with_demos_bc_and_smoothness_runs_and_resumes(tmp_path, demo_dir):
+    from torcsrl.train import train
+
+    over = [f"demos.path={demo_dir}", "demos.bc_weight=0.4", "demos.pretrain_steps=30", "demos.critic_pretrain_steps=10",
+            "algo.smooth.temporal=0.2", "algo.smooth.spatial=0.2", "collector.frames_per_batch=1", "total_frames=300",
+            "checkpoint.every_frames=150", f"run_dir={tmp_path / 'run'}"]
+    res = train(cfg_for(*over))
+    assert res["frames"] == 300 and res["updates"] > 0
+    ck = torch.load(Path(res["checkpoint"]), weights_only=False)
+    assert ck["counters"]["pretrained"] is True
+    from torcsrl.utils.logging import read_csv_metric
+
+    bc = read_csv_metric(tmp_path / "run", "loss/bc")
+    assert bc and all(v >= 0 for _, v in bc)
+
+
+def test_actor_regularisers_pull_towards_labels_and_smooth():
+    from types import SimpleNamespace
+
+    from torcsrl.agents import _build, td3
+    from torcsrl.envs.toy import make_toy_env
+
+    env = make_toy_env(seed=0)
+    cfg = cfg_for("env=toy").algo
+    keys = list(env.observation_spec.keys())
+    actor = td3.make_actor(cfg, env, keys)
+    loss = td3.make_loss(cfg, actor, td3.make_critic(cfg, env, keys), env, keys)
+    batch = env.rollout(64, break_when_any_done=False)
+    label = torch.full_like(batch["action"], 0.7)
+    batch.set("expert_action", label)
+    reg = SimpleNamespace(bc_weight=1.0, n_demo=64, smooth=SimpleNamespace(temporal=0.5, spatial=0.5, spatial_sigma=0.05))
+    opt = torch.optim.Adam(actor.parameters(), lr=1e-2)
+    first = last = None
+    for _ in range(60):
+        la, q_meta = loss._actor_loss(batch)
+        la, m = _build.actor_regularisers(loss, batch, q_meta["_action"], q_meta["_q"], la, reg)
+        opt.zero_grad()
+        la.backward()
+        opt.step()
+        first = first or {k: float(v) for k, v in m.items()}
+        last = {k: float(v) for k, v in m.items()}
+    assert set(last) == {"loss/bc", "loss/smooth_temporal", "loss/smooth_spatial"}
+    assert last["loss/bc"] < 0.5 * first["loss/bc"]
+
+
+@pytest.mark.parametrize("algo", ["bc", "dagger"])
+def test_imitation_baselines_train_and_evaluate_like_rl_drivers(tmp_path, demo_dir, algo):
+    from torcsrl.evaluate import run_cell
+    from torcsrl.policies import load_policy
+    from torcsrl.train import train
+
+    res = train(cfg_for(f"algo={algo}", f"demos.path={demo_dir}", "algo.bc_steps=40", "demos.dagger_rounds=1", "demos.dagger_frames=60",
+                        f"run_dir={tmp_path / algo}"))
+    assert res["updates"] == 40 * (2 if algo == "dagger" else 1)
+    assert res["frames"] == (60 if algo == "dagger" else 0)
+    pol = load_policy(str(tmp_path / algo))
+    rows, _ = run_cell(pol, "oval", laps=1, max_steps=20, env_kwargs={"control_hz": 10, "substeps": 20})
+    assert rows[0]["steps"] >= 1
+
+
+def test_imitation_without_demonstrations_says_so(tmp_path):
+    from torcsrl.train import train
+
+    with pytest.raises(ValueError, match="set demos.frames > 0"):
+        train(cfg_for("algo=bc", f"run_dir={tmp_path}"))

@@ -1,0 +1,214 @@
+"""Expert demonstrations in the project's replay format, with DART noise; and the DAgger labeller.
+
+``python -m torcsrl.demos [train overrides] demos.frames=50000 [demos.out=DIR]`` composes the training
+config (``conf/train.yaml``: the same env, track distribution, sensors and observation pipeline a run
+of that config trains on) and drives the scripted expert (:class:`torcsrl.policies.ExpertPolicy`) in
+it, writing every transition into a :class:`~torcsrl.utils.replay.ReplayBuffer` folder. A training
+run with ``demos.frames > 0`` writes them itself into ``<run_dir>/demos`` first; ``demos.path=DIR``
+reuses a folder.
+
+* **What is stored.** The observations exactly as the policy sees them (after the run's degradation
+  stack and scaling: the same :func:`torcsrl.train.observation_transforms`), the action *executed*
+  (``action``: what the reward and the next observation followed from, for off-policy RL) and the
+  expert's own action at that state (``expert_action``: the label for behaviour cloning).
+* **DART** (Laskey et al. 2017): each episode draws a noise level ``sigma ~ U(0, sigma_max)``; the
+  executed action is the expert's plus ``N(0, sigma^2)`` (clipped to [-1, 1]), so the data holds
+  states off the expert's line and the expert's corrections from them.
+* **DAgger** (Ross et al. 2011): :func:`label_rollouts` with a learner drives the learner's action
+  (with probability ``1 - beta``) and stores the expert's label of the states the learner reaches.
+* The expert reads the clean ``state`` (kept as ``state_clean`` before any degradation or scaling)
+  and the lap position ``info/distFromStart``; it never reads the rangefinder.
+
+``demos.json`` beside the buffer records the observation layout, the action size and the observation
+pipeline; :func:`load_demos` refuses a folder whose layout or pipeline differs from the run's, with
+one line naming both.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+__all__ = ["DemoError", "pipeline_record", "make_demo_env", "label_rollouts", "write_demos", "load_demos", "main"]
+
+META = "demos.json"
+EXTRA_KEYS = ("expert_action",)
+
+
+class DemoError(ValueError):
+    """Demonstrations that cannot be used by this run (one line)."""
+
+
+def pipeline_record(cfg: DictConfig, env) -> dict[str, Any]:
+    """What an observation means: layout, action size, scaling, degradations, control rate and car.
+
+    Two data sets (or a policy and an env) are compatible only when these are equal."""
+    from torcsrl.train import expected_meta
+
+    obs_keys = list(cfg.obs_keys or cfg.env.sensors)
+    meta = expected_meta(cfg, env, obs_keys)
+    deg = cfg.get("degradation")
+    stack = OmegaConf.to_container(deg.stack, resolve=True) if isinstance(deg, DictConfig) and deg.get("stack") else None
+    stack = {k: v for k, v in (stack or {}).items() if v is not None}
+    return {"obs_layout": meta["obs_layout"], "action_dim": meta["action_dim"], "normalize": bool(cfg.env.get("normalize", True)),
+            "degradation": stack, "control_hz": cfg.env.get("control_hz"), "substeps": cfg.env.get("substeps"),
+            "vehicle": cfg.env.get("vehicle"), "action_mode": cfg.env.get("action_mode")}
+
+
+def make_demo_env(cfg: DictConfig, seed: int):
+    """One car in the run's env (its tracks, procedural pool, surfaces), with the clean ``state``
+    kept as ``state_clean`` ahead of the run's observation transforms."""
+    from torcsrl.train import _transformed, build_base_env, env_kwargs, observation_transforms
+    from torcsrl.transforms import KeepClean
+
+    if cfg.env.name != "race":
+        raise DemoError(f"demonstrations need the race env (the expert drives a track); env.name={cfg.env.name!r}")
+    sensors = list(cfg.env.sensors)
+    extra = {} if "state" in sensors else {"sensors": tuple(sensors) + ("state",)}
+    kw = env_kwargs(cfg.env, seed=int(seed), device="cpu", num_cars=1,
+                    max_steps=int(cfg.demos.episode_steps) if cfg.get("demos") else int(cfg.env.max_steps), **extra)
+    base = build_base_env("race", kw)
+    return _transformed(base, [KeepClean(["state"]), *observation_transforms(cfg, base, seed=int(seed))])
+
+
+@torch.no_grad()
+def label_rollouts(env, frames: int, buffer, *, sigma_max: float = 0.0, learner=None, beta: float = 1.0, seed: int = 0,
+                   obs_keys: list[str] | None = None, progress: bool = False) -> dict[str, float]:
+    """Drive ``frames`` env steps and store every transition with the expert's label in ``buffer``.
+
+    Each step the expert (on the clean state) gives ``a*``; the executed action is ``a*`` plus
+    ``N(0, sigma^2)`` (``sigma ~ U(0, sigma_max)`` per episode) with probability ``beta``, else the
+    ``learner``'s action (DAgger). Returns episode statistics (episodes, laps, off-track ends).
+    """
+    from torchrl.envs.utils import step_mdp
+
+    from torcsrl.policies import EpisodeContext, ExpertPolicy
+
+    base = getattr(env, "base_env", env)
+    core = base.core
+    expert = ExpertPolicy(state_key="state_clean")
+    rng = np.random.default_rng([int(seed), 0x64656D6F])
+    gen = torch.Generator().manual_seed(int(seed))
+    keys = list(obs_keys or [])
+    stats = {"episodes": 0, "terminated": 0, "laps": 0, "frames": 0}
+
+    def new_episode():
+        td = env.reset()
+        expert.reset(EpisodeContext(track=core.car_tracks[0], seed=int(rng.integers(1 << 31)), dt=float(core.dt)))
+        return td, float(rng.uniform(0.0, sigma_max)) if sigma_max > 0 else 0.0
+
+    base.set_seed(int(seed))
+    td, sigma = new_episode()
+    t0 = time.perf_counter()
+    for t in range(int(frames)):
+        expert(td)
+        label = td.get("action").clone()
+        if learner is not None and rng.random() >= beta:
+            act = learner(*(td.get(k) for k in keys)).reshape(label.shape)
+        else:
+            act = label + sigma * torch.randn(label.shape, generator=gen) if sigma > 0 else label.clone()
+        td.set("action", act.clamp(-1.0, 1.0))
+        td.set("expert_action", label.clamp(-1.0, 1.0))
+        td = env.step(td)
+        buffer.extend(td)
+        nxt = td.get("next")
+        if bool(nxt.get("done").reshape(-1)[0]):
+            stats["episodes"] += 1
+            stats["terminated"] += int(nxt.get("terminated").reshape(-1)[0])
+            stats["laps"] += int(nxt.get(("info", "lap")).reshape(-1)[0])
+            td, sigma = new_episode()
+        else:
+            td = step_mdp(td)
+        if progress and (t + 1) % 5000 == 0:
+            print(f"[torcsrl.demos] {t + 1}/{frames} frames, {stats['episodes']} episodes, "
+                  f"{(t + 1) / (time.perf_counter() - t0):.0f} frames/s", file=sys.stderr)
+    stats["frames"] = int(frames)
+    return stats
+
+
+def write_demos(cfg: DictConfig, out: str | Path, frames: int | None = None, seed: int | None = None) -> Path:
+    """Write ``frames`` (default ``cfg.demos.frames``) DART demonstrations of the expert in the env of
+    ``cfg`` to the folder ``out`` (replay buffer + ``demos.json``); returns ``out``."""
+    from torcsrl.utils.replay import ReplayBuffer
+
+    d = cfg.demos
+    frames = int(d.frames if frames is None else frames)
+    if frames < 1:
+        raise DemoError(f"demos.frames must be >= 1 to write demonstrations, got {frames}")
+    seed = int(cfg.seed) + 7777 if seed is None else int(seed)
+    out = Path(out)
+    obs_keys = list(cfg.obs_keys or cfg.env.sensors)
+    env = make_demo_env(cfg, seed)
+    try:
+        buffer = ReplayBuffer(frames, 1, obs_keys, extra_keys=EXTRA_KEYS)
+        t0 = time.perf_counter()
+        stats = label_rollouts(env, frames, buffer, sigma_max=float(d.sigma_max), seed=seed, progress=True)
+        record = pipeline_record(cfg, env)
+    finally:
+        env.close()
+    buffer.dumps(out)
+    meta = {"record": record, "frames": frames, "sigma_max": float(d.sigma_max), "seed": seed, "stats": stats,
+            "tracks": OmegaConf.to_container(cfg.env.track, resolve=True) if OmegaConf.is_config(cfg.env.track) else cfg.env.track,
+            "procedural": OmegaConf.to_container(cfg.env.procedural, resolve=True) if OmegaConf.is_config(cfg.env.get("procedural")) else None,
+            "surface": OmegaConf.to_container(cfg.env.surface, resolve=True) if OmegaConf.is_config(cfg.env.surface) else cfg.env.surface,
+            "wall_s": time.perf_counter() - t0}
+    (out / META).write_text(json.dumps(meta, indent=1))
+    print(f"[torcsrl.demos] wrote {frames} frames ({stats['episodes']} episodes, {stats['terminated']} off the road) to {out} "
+          f"in {meta['wall_s']:.0f} s", file=sys.stderr)
+    return out
+
+
+def load_demos(path: str | Path, record: dict[str, Any], batch_size: int, n_steps: int = 1, gamma: float = 0.99):
+    """The demonstrations in ``path`` as a :class:`~torcsrl.utils.replay.ReplayBuffer`; :class:`DemoError`
+    (one line) when the folder is missing or its observation layout / pipeline differs from ``record``."""
+    from torcsrl.utils.replay import ReplayBuffer
+
+    path = Path(path)
+    try:
+        meta = json.loads((path / META).read_text())
+        buf_meta = json.loads((path / "meta.json").read_text())
+    except (OSError, ValueError):
+        raise DemoError(f"{path} is not a demonstration folder (no readable {META} / meta.json; write one with python -m torcsrl.demos)") from None
+    theirs = meta["record"]
+    for k in ("obs_layout", "action_dim", "normalize", "degradation", "control_hz", "substeps", "vehicle", "action_mode"):
+        if theirs.get(k) != record.get(k):
+            raise DemoError(f"demonstrations {path} were written with {k}={theirs.get(k)!r}; this run has {k}={record.get(k)!r}")
+    buf = ReplayBuffer(int(buf_meta["capacity"]), int(batch_size), list(buf_meta["obs_keys"]), streams=int(buf_meta["streams"]),
+                       n_steps=int(n_steps), gamma=float(gamma), extra_keys=list(buf_meta.get("extra_keys", [])))
+    if "expert_action" not in buf.extra_keys:
+        raise DemoError(f"demonstrations {path} hold no expert_action labels (extra keys {buf.extra_keys})")
+    buf.loads(path)
+    if len(buf) == 0:
+        raise DemoError(f"demonstrations {path} are empty")
+    return buf
+
+
+def main() -> None:
+    import hydra
+
+    @hydra.main(config_path="conf", config_name="train", version_base="1.3")
+    def _main(cfg: DictConfig) -> None:
+        from torcsrl.config import validate
+
+        try:
+            validate(cfg)
+            out = cfg.demos.out or str(Path("outputs") / "demos" / time.strftime("%Y-%m-%d_%H-%M-%S"))
+            torch.set_num_threads(1)
+            write_demos(cfg, out)
+            print(f"[torcsrl.demos] train on them: python -m torcsrl.train demos.path={out} ...", file=sys.stderr)
+        except ValueError as err:
+            print(f"torcsrl.demos: error: {err}", file=sys.stderr)
+            sys.exit(2)
+
+    _main()
+
+
+if __name__ == "__main__":
+    main()

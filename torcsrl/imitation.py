@@ -1,0 +1,124 @@
+"""The imitation loop of ``algo=bc`` and ``algo=dagger`` (``python -m torcsrl.train algo=bc demos.frames=...``).
+
+Reads like :func:`torcsrl.train.train`, without a critic: env (for the specs and validation), actor,
+demonstrations (:func:`torcsrl.train.make_demos`), then fit -> validate -> checkpoint; DAgger repeats
+(drive the learner with the expert mixed in, label with the expert, refit on everything) for
+``demos.dagger_rounds`` rounds, the expert's share ``beta`` halving each round. Checkpoints hold the
+actor in the same format as the RL agents', so ``evaluate``, ``report`` and ``policies export`` take them
+as they are.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from tensordict.nn import TensorDictModule
+
+__all__ = ["train"]
+
+
+def _mixed_sample(buffers: list, batch_size: int):
+    """A batch drawn from several buffers in proportion to their sizes."""
+    sizes = [len(b) for b in buffers]
+    total = sum(sizes)
+    counts = [batch_size * s // total for s in sizes]
+    counts[0] += batch_size - sum(counts)
+    parts = [b.sample(c) for b, c in zip(buffers, counts) if c > 0]
+    return parts[0] if len(parts) == 1 else torch.cat(parts, 0)
+
+
+def train(cfg: DictConfig) -> dict[str, Any]:
+    from torcsrl import agents
+    from torcsrl.agents._build import bc_step
+    from torcsrl.agents.networks import split_obs_keys
+    from torcsrl.demos import EXTRA_KEYS, label_rollouts, make_demo_env
+    from torcsrl.objectives.common import ObsUnpacker
+    from torcsrl.train import _run_dir, expected_meta, make_demos, make_eval_envs, make_train_env, validate_all
+    from torcsrl.utils.checkpoint import checkpoint_path, latest_checkpoint, prune, save_checkpoint
+    from torcsrl.utils.logging import log_metrics, make_loggers
+    from torcsrl.utils.replay import ReplayBuffer
+    from torcsrl.utils.seeding import seed_everything
+    from torcsrl.utils.threads import configure_threads
+
+    algo = str(cfg.algo.name)
+    run_dir = _run_dir(cfg)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    ckpt_dir = run_dir / "checkpoints"
+    configure_threads(cfg.threads, 0)
+    seed_everything(int(cfg.seed))
+    agent = agents.get(algo)
+    obs_keys = list(cfg.obs_keys or cfg.env.sensors)
+    env = make_train_env(cfg)
+    t_start = time.perf_counter()
+    eval_envs: dict = {}
+    loggers: list = []
+    try:
+        actor = agent.make_actor(cfg.algo, env, obs_keys)
+        optim = agent.make_optimizers(cfg.algo, actor)
+        demos = make_demos(cfg, env, run_dir)
+        if demos is None:
+            raise ValueError(f"algo={algo} imitates demonstrations: set demos.frames > 0 (written for this run) or demos.path")
+        meta = expected_meta(cfg, env, obs_keys)
+        eval_envs = make_eval_envs(cfg)
+        loggers = make_loggers(cfg.logger.backends, run_dir, cfg.logger.exp_name, cfg.logger.wandb_project, cfg.logger.wandb_mode)
+        _, img = split_obs_keys(env.observation_spec, obs_keys)
+        net = SimpleNamespace(actor_network=actor, obs=ObsUnpacker(obs_keys, img))
+        policy = TensorDictModule(actor, in_keys=obs_keys, out_keys=["action"])
+        buffers = [demos]
+        rounds = int(cfg.demos.dagger_rounds) if algo == "dagger" else 0
+        steps_per_fit, batch_size, precision = int(cfg.algo.bc_steps), int(cfg.algo.batch_size), str(cfg.algo.precision)
+        updates = frames = 0
+        result: dict[str, Any] = {}
+        print(f"[torcsrl] imitation ({algo}) on {len(demos)} demonstration frames, {rounds} DAgger rounds; outputs in {run_dir}", file=sys.stderr)
+        for rnd in range(rounds + 1):
+            if rnd > 0:  # DAgger: the learner drives (the expert's noisy action with probability beta), the expert labels
+                beta = float(cfg.demos.dagger_beta) * 0.5 ** (rnd - 1)
+                agg = ReplayBuffer(int(cfg.demos.dagger_frames), batch_size, obs_keys, extra_keys=EXTRA_KEYS)
+                denv = make_demo_env(cfg, int(cfg.seed) + 31 * rnd)
+                try:
+                    actor.eval()
+                    stats = label_rollouts(denv, int(cfg.demos.dagger_frames), agg, sigma_max=float(cfg.demos.sigma_max), learner=actor,
+                                           beta=beta, seed=int(cfg.seed) + 31 * rnd, obs_keys=obs_keys)
+                    actor.train()
+                finally:
+                    denv.close()
+                buffers.append(agg)
+                frames += int(cfg.demos.dagger_frames)
+                log_metrics(loggers, {"train/dagger_round": rnd, "train/dagger_beta": beta, "train/episodes": stats["episodes"],
+                                      "train/terminated": stats["terminated"]}, updates)
+            t0 = time.perf_counter()
+            for i in range(steps_per_fit):
+                bc = bc_step(net, optim, _mixed_sample(buffers, batch_size), precision)
+                updates += 1
+                if updates % int(cfg.logger.every_frames) == 0:
+                    log_metrics(loggers, {"loss/bc": float(bc), "time/updates_per_s": (i + 1) / (time.perf_counter() - t0),
+                                          "train/frames": frames, "train/buffer_size": sum(len(b) for b in buffers)}, updates)
+            actor.eval()
+            ev = validate_all(eval_envs, policy, int(cfg.eval.episodes), int(cfg.eval.max_steps))
+            actor.train()
+            log_metrics(loggers, ev, updates)
+            print(f"[torcsrl] {algo} round {rnd}: loss/bc {float(bc):.4f}, eval/laps {ev['eval/laps']:.2f}, eval/reward {ev['eval/reward']:.1f}",
+                  file=sys.stderr)
+            save_checkpoint(checkpoint_path(ckpt_dir, updates), {"meta": meta, "actor": actor.state_dict(), "config": OmegaConf.to_yaml(cfg),
+                                                                 "counters": {"updates": updates, "frames": frames, "round": rnd}})
+            prune(ckpt_dir, int(cfg.checkpoint.keep))
+            result = {"loss/bc": float(bc), **ev}
+    finally:
+        for e in (env, *eval_envs.values()):
+            if not e.is_closed:
+                e.close()
+        for lg in loggers:
+            for f in getattr(getattr(lg, "experiment", None), "files", {}).values():
+                f.close()
+    wall = time.perf_counter() - t_start
+    ck = latest_checkpoint(ckpt_dir)
+    print(f"[torcsrl] done: {updates} updates in {wall:.1f} s; last checkpoint: {ck}\n"
+          f"[torcsrl] evaluate: python -m torcsrl.evaluate --policy {run_dir} --track set:heldout --surface asphalt dirt --laps 10", file=sys.stderr)
+    return {"frames": frames, "updates": updates, "episodes": 0, "wall_s": wall, "run_dir": str(run_dir),
+            "checkpoint": str(ck) if ck else None, **result}
