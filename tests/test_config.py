@@ -38,7 +38,7 @@ FOOTPRINT = {
     "sensors": ("env.sensors", "env.camera"),
     "surface": ("env.surface",),
     "degradation": ("degradation",),
-    "track": ("env.track",),
+    "track": ("env.track", "env.procedural"),
     "reward": ("env.reward",),
     "vehicle": ("env.vehicle", "env.vehicle_overrides"),
 }

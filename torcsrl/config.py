@@ -65,6 +65,21 @@ RANGES: dict[str, tuple[float | None, float | None, str]] = {
     "logger.every_frames": (1, None, "closed"),
     "checkpoint.every_frames": (0, None, "closed"),
     "checkpoint.keep": (1, None, "closed"),
+    "max_minutes": (0.0, None, "open"),
+    "demos.frames": (0, None, "closed"),
+    "demos.sigma_max": (0.0, None, "closed"),
+    "demos.episode_steps": (1, None, "closed"),
+    "demos.ratio": (0.0, 1.0, "closed"),
+    "demos.bc_weight": (0.0, None, "closed"),
+    "demos.pretrain_steps": (0, None, "closed"),
+    "demos.critic_pretrain_steps": (0, None, "closed"),
+    "demos.dagger_rounds": (0, None, "closed"),
+    "demos.dagger_frames": (1, None, "closed"),
+    "demos.dagger_beta": (0.0, 1.0, "closed"),
+    "algo.bc_steps": (1, None, "closed"),
+    "algo.smooth.temporal": (0.0, None, "closed"),
+    "algo.smooth.spatial": (0.0, None, "closed"),
+    "algo.smooth.spatial_sigma": (0.0, None, "closed"),
 }
 SEVERITIES = (1, 5)
 
@@ -397,6 +412,13 @@ def _check_race_env(env: Mapping, key, mine, out: list[str]) -> None:
         except (ValueError, tracks.TrackError) as err:
             sets = ", ".join(f"set:{s}" for s in sorted(tracks.track_sets()))
             out.append(f"{key('track')}: {err}; sets: {sets}; or a list of those")
+    if mine("procedural") and env.get("procedural") is not None:
+        from torcsrl.envs.tracks.procedural import ProceduralSpec
+
+        try:
+            ProceduralSpec.from_config(env["procedural"])
+        except (ValueError, TypeError) as err:
+            out.append(f"{key('procedural')}: {err}")
     if mine("surface"):
         for s in _as_list(env.get("surface")):
             if s is not None and s not in surfaces.ROAD_SURFACES:

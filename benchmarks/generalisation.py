@@ -1,0 +1,192 @@
+"""Generalisation benchmark: drivers' 10-lap time trials on tracks and surfaces they never trained on.
+
+For each driver (a checkpoint, a run folder, ``reference``, ``expert`` or ``heuristic``) it drives the
+time trials of :mod:`torcsrl.evaluate` (deterministic policy, from the grid) on
+
+* ``set:heldout`` (six bundled tracks) on asphalt and on dirt, and
+* ``--generated N`` procedural tracks from the held-out seed range (``gen-0 … gen-<N-1>``, or ``proc-…``
+  with ``--generator proc``; :data:`torcsrl.envs.tracks.procedural.HELDOUT_SEEDS`), on both surfaces,
+
+and prints per driver and surface: completion rate (all N laps, no termination) on the bundled and on
+the generated tracks, the median of (fastest lap / the expert's fastest lap at the driver's control
+rate) over the completed tracks, and the median steering sign flips per km. The scripted expert's lap
+on each track is driven once (2 laps) at the same control rate as the driver.
+
+    python benchmarks/generalisation.py --policy torcsrl/assets/reference_td3.pt RUN_DIR ... [--laps 10] [--generated 20] [--workers 2]
+    python benchmarks/generalisation.py --policy RUN_DIR --curve       # held-out completion against training frames -> PNG
+
+``--curve`` drives every checkpoint of each run folder (``--curve-laps`` laps, default 1) on the same tracks
+and plots completion against frames (``--out``/curve.png). ``--train SEEDS`` first trains the recipe
+(``experiment=generalise`` and any ``-- overrides``) once per seed, then benchmarks the runs. Held-out tracks
+are only ever driven here, never trained or selected on.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import statistics
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def _cell(args):
+    spec, track, surface, laps, hz = args
+    import torch
+
+    torch.set_num_threads(1)
+    from torcsrl.evaluate import run_cell
+    from torcsrl.policies import load_policy
+
+    pol = load_policy(spec)
+    kw = {} if "control_hz" in pol.env_overrides else {"control_hz": hz, "substeps": int(round(200 / hz))}
+    rows, _ = run_cell(pol, track, surface, laps=laps, env_kwargs=kw)
+    r = rows[0]
+    return {"policy": spec, "track": track, "surface": surface, "success": bool(r["success"]), "laps": int(r["laps"]),
+            "fastest_lap": float(r["fastest_lap"]), "flips_per_km": float(r["steer_flips_per_km"]), "termination": r["termination"],
+            "mean_speed_kmh": float(r["mean_speed_kmh"])}
+
+
+def _hz(spec: str) -> float:
+    from torcsrl.policies import load_policy
+
+    return float(load_policy(spec).env_overrides.get("control_hz", 10.0))
+
+
+def run_grid(specs: list[str], tracks: list[str], surfaces: list[str], laps: int, workers: int, hz: dict[str, float]) -> list[dict]:
+    jobs = [(s, t, u, laps, hz[s]) for s in specs for t in tracks for u in surfaces]
+    if workers <= 1:
+        return [_cell(j) for j in jobs]
+    with ProcessPoolExecutor(workers) as ex:
+        return list(ex.map(_cell, jobs))
+
+
+def summarise(rows: list[dict], expert: dict[tuple[str, str], float], generated: set[str]) -> list[dict]:
+    out = []
+    for spec in dict.fromkeys(r["policy"] for r in rows):
+        for surface in dict.fromkeys(r["surface"] for r in rows):
+            mine = [r for r in rows if r["policy"] == spec and r["surface"] == surface]
+            bundled = [r for r in mine if r["track"] not in generated]
+            gen = [r for r in mine if r["track"] in generated]
+            ratios = [r["fastest_lap"] / expert[(r["track"], surface)] for r in mine
+                      if r["success"] and math.isfinite(expert.get((r["track"], surface), math.nan))]
+            out.append({"policy": spec, "surface": surface,
+                        "heldout_completed": sum(r["success"] for r in bundled), "heldout_total": len(bundled),
+                        "generated_completed": sum(r["success"] for r in gen), "generated_total": len(gen),
+                        "median_lap_vs_expert": statistics.median(ratios) if ratios else math.nan,
+                        "median_flips_per_km": statistics.median([r["flips_per_km"] for r in mine]) if mine else math.nan})
+    return out
+
+
+def table(summary: list[dict]) -> str:
+    lines = ["| driver | surface | set:heldout completed | generated completed | median lap / expert | median flips/km |",
+             "|---|---|---|---|---|---|"]
+    for s in summary:
+        gen = f"{s['generated_completed']}/{s['generated_total']} ({100 * s['generated_completed'] / max(s['generated_total'], 1):.0f} %)"
+        lines.append(f"| {s['policy']} | {s['surface']} | {s['heldout_completed']}/{s['heldout_total']} | {gen} | "
+                     f"{s['median_lap_vs_expert']:.3f} | {s['median_flips_per_km']:.1f} |")
+    return "\n".join(lines)
+
+
+def curve(run_dirs: list[str], tracks: list[str], surfaces: list[str], laps: int, workers: int, out: Path) -> Path:
+    """Held-out completion rate of every checkpoint of each run, against its training frames -> curve.png."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for rd in run_dirs:
+        cks = sorted((Path(rd) / "checkpoints").glob("ckpt_*.pt"))
+        specs = [str(c) for c in cks]
+        hz = {s: _hz(s) for s in specs}
+        rows = run_grid(specs, tracks, surfaces, laps, workers, hz)
+        xs, ys = [], []
+        for c in cks:
+            mine = [r for r in rows if r["policy"] == str(c)]
+            xs.append(int(c.stem.split("_")[1]))
+            ys.append(sum(r["success"] for r in mine) / max(len(mine), 1))
+        ax.plot(xs, ys, marker="o", label=Path(rd).name)
+        print(f"{Path(rd).name}: " + ", ".join(f"{x}: {y:.2f}" for x, y in zip(xs, ys)))
+    ax.set_xlabel("training frames")
+    ax.set_ylabel(f"held-out completion ({laps} lap{'s' if laps > 1 else ''})")
+    ax.set_ylim(-0.02, 1.02)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "curve.png"
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    extra = argv[argv.index("--") + 1:] if "--" in argv else []
+    argv = argv[: argv.index("--")] if "--" in argv else argv
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--policy", nargs="+", default=[], help="checkpoints, run folders, reference, expert, heuristic")
+    ap.add_argument("--train", nargs="*", type=int, default=None, help="train experiment=generalise with these seeds first")
+    ap.add_argument("--laps", type=int, default=10)
+    ap.add_argument("--generated", type=int, default=20, help="held-out generated tracks (seeds 0..N-1)")
+    ap.add_argument("--generator", choices=("gen", "proc"), default="gen")
+    ap.add_argument("--surfaces", nargs="+", default=["asphalt", "dirt"])
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--curve", action="store_true", help="plot held-out completion against frames for each run folder")
+    ap.add_argument("--curve-laps", type=int, default=1)
+    ap.add_argument("--out", default="outputs/benchmarks/generalisation")
+    args = ap.parse_args(argv)
+
+    from torcsrl.envs import tracks as _tracks
+    from torcsrl.envs.tracks.procedural import heldout_names
+
+    specs = list(args.policy)
+    if args.train:
+        from hydra import compose, initialize_config_dir
+
+        from torcsrl.train import train
+
+        for seed in args.train:
+            run_dir = Path(args.out) / f"generalise_seed{seed}"
+            with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+                cfg = compose("train", overrides=["experiment=generalise", f"seed={seed}", f"run_dir={run_dir}", "progress=false", *extra])
+            train(cfg)
+            specs.append(str(run_dir))
+    if not specs:
+        ap.error("give --policy and/or --train")
+    heldout = _tracks.resolve("set:heldout")
+    generated = heldout_names(args.generated, args.generator) if args.generated else []
+    tracks = heldout + generated
+    out = Path(args.out)
+    t0 = time.perf_counter()
+    if args.curve:
+        path = curve([s for s in specs if Path(s).is_dir()], tracks, args.surfaces, args.curve_laps, args.workers, out)
+        print(f"wrote {path}")
+        return 0
+    hz = {s: _hz(s) for s in specs}
+    rows = run_grid(specs, tracks, args.surfaces, args.laps, args.workers, hz)
+    exp_specs = sorted(set(hz.values()))
+    expert: dict[tuple[str, str], float] = {}
+    for rate in exp_specs:  # the expert at each driver's control rate (2 laps: its fastest is a flying lap)
+        for r in run_grid(["expert"], tracks, args.surfaces, 2, args.workers, {"expert": rate}):
+            expert[(r["track"], r["surface"])] = r["fastest_lap"] if r["laps"] >= 2 else math.nan
+    summary = summarise(rows, expert, set(generated))
+    print(f"\n{len(rows)} trials of {args.laps} laps in {time.perf_counter() - t0:.0f} s; generated: {generated[0]}..{generated[-1]}"
+          if generated else "")
+    print(table(summary))
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "generalisation.json").write_text(json.dumps({"rows": rows, "summary": summary,
+                                                         "expert": {f"{k[0]}|{k[1]}": v for k, v in expert.items()}}, indent=1))
+    (out / "generalisation.md").write_text(table(summary) + "\n")
+    print(f"wrote {out / 'generalisation.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
