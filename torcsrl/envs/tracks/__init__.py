@@ -7,12 +7,15 @@ Public API::
     t = tracks.load("oval")              # a validated Track
     t = tracks.load("oval", surface="ice")
     t = tracks.generate(7, length_m=2500, corners=9)
+    t = tracks.generate_circuit(7, difficulty=0.8)   # hairpins, chicanes, long straights, ...
     tracks.track_sets()                  # {"train": [...], "heldout": [...], ...}
     tracks.resolve("set:train")          # names in a set (or [name] for a track name)
 
 Tracks are data files in ``torcsrl/envs/tracks/data`` (segment lists, or sidecars naming a
 centreline point file); sets are in ``data/sets.yaml``. ``gen-<seed>`` names a procedural track
-with the generator's default knobs, so config can mix bundled and generated tracks.
+with the generator's default knobs and ``proc-<seed>`` a procedural circuit
+(:func:`generate_circuit`, difficulty drawn from the seed), so config can mix bundled and
+generated tracks.
 """
 
 from __future__ import annotations
@@ -25,10 +28,11 @@ from pathlib import Path
 import yaml
 
 from torcsrl.envs.track import Track, TrackError
-from torcsrl.envs.tracks.generator import generate
+from torcsrl.envs.tracks.generator import generate, generate_circuit
 from torcsrl.envs.tracks.sources import load_file
 
-__all__ = ["Track", "TrackError", "names", "load", "load_file", "generate", "track_sets", "resolve", "data_dir"]
+__all__ = ["Track", "TrackError", "names", "load", "load_file", "generate", "generate_circuit", "track_sets", "resolve",
+           "data_dir"]
 
 
 def data_dir() -> Path:
@@ -41,25 +45,36 @@ def names() -> list[str]:
     return sorted(p.stem for p in data_dir().glob("*.yaml") if p.stem != "sets")
 
 
+def _generated(name: str) -> bool:
+    """``gen-<seed>`` or ``proc-<seed>``: a procedural track named by its seed."""
+    for prefix in ("gen-", "proc-"):
+        if name.startswith(prefix) and name[len(prefix):].isdigit():
+            return True
+    return False
+
+
 @lru_cache(maxsize=None)
 def _load_cached(name: str) -> Track:
     if name.startswith("gen-"):
         return generate(int(name[4:]))
+    if name.startswith("proc-"):
+        return generate_circuit(int(name[5:]))
     return load_file(data_dir() / f"{name}.yaml")
 
 
 def load(name: str, surface: str | None = None) -> Track:
-    """A bundled (or ``gen-<seed>``) track by name, optionally on another road surface.
+    """A bundled (or ``gen-<seed>`` / ``proc-<seed>``) track by name, optionally on another road surface.
 
     Raises:
         ValueError: unknown name (the message lists the available ones) or unknown surface.
     """
     if not isinstance(name, str):
         raise ValueError(f"a track name must be a string, got {name!r}")
-    if (name.startswith("gen-") and name[4:].isdigit()) or name in names():
+    if _generated(name) or name in names():
         track = copy.copy(_load_cached(name))
     else:
-        raise ValueError(f"unknown track {name!r}; available: {', '.join(names())} (or gen-<seed> for a generated one)")
+        raise ValueError(f"unknown track {name!r}; available: {', '.join(names())} (or gen-<seed> / proc-<seed> "
+                         f"for a generated one)")
     return track.with_surface(surface) if surface else track
 
 
@@ -68,7 +83,7 @@ def _sets() -> dict[str, list[str]]:
     raw = yaml.safe_load((data_dir() / "sets.yaml").read_text())
     known = set(names())
     for set_name, members in raw.items():
-        missing = [m for m in members if m not in known and not (m.startswith("gen-") and m[4:].isdigit())]
+        missing = [m for m in members if m not in known and not _generated(m)]
         if missing:
             raise TrackError(f"{data_dir() / 'sets.yaml'}: set {set_name!r} names unknown tracks {missing}")
     return {k: list(v) for k, v in raw.items()}

@@ -3,7 +3,9 @@
     python -m torcsrl.envs.tracks list
     python -m torcsrl.envs.tracks plot oval [--surface dirt] [--out oval.png]
     python -m torcsrl.envs.tracks plot --generated 7 [--length 2500 --corners 9]
+    python -m torcsrl.envs.tracks plot --procedural 7 [--difficulty 0.8] [--out proc7.png]
     python -m torcsrl.envs.tracks library --out docs/img/tracks.png
+    python -m torcsrl.envs.tracks procedural --out docs/img/procedural_tracks.png
 """
 
 from __future__ import annotations
@@ -110,6 +112,35 @@ def plot_library(out: str) -> str:
     return out
 
 
+def plot_procedural(out: str, seeds: tuple[int, ...] = (1, 2, 3),
+                    difficulties: tuple[float, ...] = (0.0, 0.33, 0.66, 1.0)) -> str:
+    """Write one PNG of procedural circuits: a row per difficulty, a column per seed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows, cols = len(difficulties), len(seeds)
+    fig, axs = plt.subplots(rows, cols, figsize=(5.2 * cols, 4.4 * rows), squeeze=False)
+    for r, d in enumerate(difficulties):
+        for c, seed in enumerate(seeds):
+            t = tracks.generate_circuit(seed, d)
+            s = t.summary()
+            w = t.w_left + t.w_right
+            features = t.description.split(": ", 1)[-1].replace("decreasing-radius bends", "decreasing")
+            _draw(axs[r, c], t, title=f"proc seed {seed}, difficulty {d:.2f}: {t.length / 1000:.2f} km, "
+                                       f"{w.min():.0f}-{w.max():.0f} m wide, min R {s['min_radius_m']:.0f} m"
+                                       f"\n{features}")
+            axs[r, c].title.set_fontsize(8)
+    _legend(fig)
+    fig.suptitle("torcsrl procedural circuits, generate_circuit(seed, difficulty) "
+                 "(centreline coloured by curvature; red: start/finish)")
+    fig.tight_layout(rect=(0, 0.03, 1, 0.97))
+    fig.savefig(out, dpi=80)
+    plt.close(fig)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m torcsrl.envs.tracks", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -118,6 +149,9 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser("plot", help="PNG of one track")
     p.add_argument("name", nargs="?", help="bundled track name")
     p.add_argument("--generated", type=int, metavar="SEED", help="plot a procedural track instead")
+    p.add_argument("--procedural", type=int, metavar="SEED", help="plot a procedural circuit (generate_circuit)")
+    p.add_argument("--difficulty", type=float, default=None,
+                   help="procedural circuit difficulty in [0, 1] (default: drawn from the seed)")
     p.add_argument("--length", type=float, default=3000.0, help="generated lap length [m]")
     p.add_argument("--corners", type=int, default=10)
     p.add_argument("--min-radius", type=float, default=25.0, help="[m]")
@@ -126,6 +160,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default=None)
     lib = sub.add_parser("library", help="one PNG of every bundled track")
     lib.add_argument("--out", default="tracks.png")
+    proc = sub.add_parser("procedural", help="one PNG of procedural circuits at four difficulties")
+    proc.add_argument("--out", default="procedural_tracks.png")
+    proc.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
     args = ap.parse_args(argv)
     try:
         if args.cmd == "list":
@@ -139,13 +176,18 @@ def main(argv: list[str] | None = None) -> int:
         if args.cmd == "library":
             print(plot_library(args.out))
             return 0
-        if args.generated is not None:
+        if args.cmd == "procedural":
+            print(plot_procedural(args.out, tuple(args.seeds)))
+            return 0
+        if args.procedural is not None:
+            t = tracks.generate_circuit(args.procedural, args.difficulty, surface=args.surface or "asphalt")
+        elif args.generated is not None:
             t = tracks.generate(args.generated, length_m=args.length, corners=args.corners,
                                 min_radius_m=args.min_radius, width_m=args.width, surface=args.surface or "asphalt")
         elif args.name:
             t = tracks.load(args.name, surface=args.surface)
         else:
-            ap.error("give a track name or --generated SEED")
+            ap.error("give a track name, --generated SEED or --procedural SEED")
         print(plot_track(t, args.out or f"{t.name}.png"))
         return 0
     except ValueError as err:
