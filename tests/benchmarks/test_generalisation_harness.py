@@ -1,0 +1,37 @@
+"""benchmarks/generalisation.py: its summary arithmetic, and one real (tiny) trial end to end."""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _bench():
+    spec = importlib.util.spec_from_file_location("generalisation_bench", ROOT / "benchmarks" / "generalisation.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_summary_counts_bundled_and_generated_apart_and_ratios_only_completed():
+    b = _bench()
+    rows = [
+        {"policy": "p", "track": "kidney", "surface": "asphalt", "success": True, "fastest_lap": 60.0, "flips_per_km": 4.0},
+        {"policy": "p", "track": "alpine", "surface": "asphalt", "success": False, "fastest_lap": math.nan, "flips_per_km": 30.0},
+        {"policy": "p", "track": "gen-0", "surface": "asphalt", "success": True, "fastest_lap": 110.0, "flips_per_km": 8.0},
+    ]
+    expert = {("kidney", "asphalt"): 50.0, ("alpine", "asphalt"): 70.0, ("gen-0", "asphalt"): 100.0}
+    (s,) = b.summarise(rows, expert, {"gen-0"})
+    assert (s["heldout_completed"], s["heldout_total"], s["generated_completed"], s["generated_total"]) == (1, 2, 1, 1)
+    assert math.isclose(s["median_lap_vs_expert"], (1.2 + 1.1) / 2)
+    assert s["median_flips_per_km"] == 8.0
+    assert "| p | asphalt | 1/2 | 1/1 (100 %) | 1.150 | 8.0 |" in b.table([s])
+
+
+def test_one_real_trial_of_the_heuristic():
+    b = _bench()
+    (row,) = b.run_grid(["heuristic"], ["oval"], ["asphalt"], 1, 1, {"heuristic": 10.0})
+    assert row["track"] == "oval" and row["success"] and row["fastest_lap"] > 30
