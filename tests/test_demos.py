@@ -38,7 +38,8 @@ def test_demos_store_the_executed_action_and_the_experts_label(demo_dir):
     assert meta["frames"] == 240 and meta["record"]["obs_layout"] == "rangefinder:19,state:11"
     assert meta["stats"]["episodes"] >= 1  # 150-step episodes: at least one ended and restarted
     cfg = cfg_for()
-    from torcsrl.demos import make_demo_env, pipeline_record
+    from torcsrl.demos import make_demo_env
+    from torcsrl.train import pipeline_record
 
     env = make_demo_env(cfg, 0)
     try:
@@ -62,7 +63,8 @@ def test_noise_free_expert_stays_on_the_road(tmp_path):
 
 def test_demos_of_another_pipeline_are_refused_in_one_line(demo_dir):
     cfg = cfg_for("env.normalize=false")
-    from torcsrl.demos import make_demo_env, pipeline_record
+    from torcsrl.demos import make_demo_env
+    from torcsrl.train import pipeline_record
 
     env = make_demo_env(cfg, 0)
     try:

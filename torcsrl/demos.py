@@ -36,7 +36,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-__all__ = ["DemoError", "pipeline_record", "make_demo_env", "label_rollouts", "write_demos", "load_demos", "main"]
+__all__ = ["DemoError", "make_demo_env", "label_rollouts", "write_demos", "load_demos", "main"]
 
 META = "demos.json"
 EXTRA_KEYS = ("expert_action",)
@@ -44,22 +44,6 @@ EXTRA_KEYS = ("expert_action",)
 
 class DemoError(ValueError):
     """Demonstrations that cannot be used by this run (one line)."""
-
-
-def pipeline_record(cfg: DictConfig, env) -> dict[str, Any]:
-    """What an observation means: layout, action size, scaling, degradations, control rate and car.
-
-    Two data sets (or a policy and an env) are compatible only when these are equal."""
-    from torcsrl.train import expected_meta
-
-    obs_keys = list(cfg.obs_keys or cfg.env.sensors)
-    meta = expected_meta(cfg, env, obs_keys)
-    deg = cfg.get("degradation")
-    stack = OmegaConf.to_container(deg.stack, resolve=True) if isinstance(deg, DictConfig) and deg.get("stack") else None
-    stack = {k: v for k, v in (stack or {}).items() if v is not None}
-    return {"obs_layout": meta["obs_layout"], "action_dim": meta["action_dim"], "normalize": bool(cfg.env.get("normalize", True)),
-            "degradation": stack, "control_hz": cfg.env.get("control_hz"), "substeps": cfg.env.get("substeps"),
-            "vehicle": cfg.env.get("vehicle"), "action_mode": cfg.env.get("action_mode")}
 
 
 def make_demo_env(cfg: DictConfig, seed: int):
@@ -150,6 +134,8 @@ def write_demos(cfg: DictConfig, out: str | Path, frames: int | None = None, see
         buffer = ReplayBuffer(frames, 1, obs_keys, extra_keys=EXTRA_KEYS)
         t0 = time.perf_counter()
         stats = label_rollouts(env, frames, buffer, sigma_max=float(d.sigma_max), seed=seed, progress=True)
+        from torcsrl.train import pipeline_record
+
         record = pipeline_record(cfg, env)
     finally:
         env.close()
@@ -177,7 +163,7 @@ def load_demos(path: str | Path, record: dict[str, Any], batch_size: int, n_step
     except (OSError, ValueError):
         raise DemoError(f"{path} is not a demonstration folder (no readable {META} / meta.json; write one with python -m torcsrl.demos)") from None
     theirs = meta["record"]
-    for k in ("obs_layout", "action_dim", "normalize", "degradation", "control_hz", "substeps", "vehicle", "action_mode"):
+    for k in ("obs_layout", "action_dim", "normalize", "scales", "degradation", "control_hz", "substeps", "vehicle", "action_mode"):
         if theirs.get(k) != record.get(k):
             raise DemoError(f"demonstrations {path} were written with {k}={theirs.get(k)!r}; this run has {k}={record.get(k)!r}")
     buf = ReplayBuffer(int(buf_meta["capacity"]), int(batch_size), list(buf_meta["obs_keys"]), streams=int(buf_meta["streams"]),

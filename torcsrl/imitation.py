@@ -39,7 +39,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     from torcsrl.agents.networks import split_obs_keys
     from torcsrl.demos import EXTRA_KEYS, label_rollouts, make_demo_env
     from torcsrl.objectives.common import ObsUnpacker
-    from torcsrl.train import _run_dir, expected_meta, make_demos, make_eval_envs, make_train_env, validate_all
+    from torcsrl.train import _run_dir, expected_meta, make_demos, make_eval_envs, make_train_env, pipeline_record, validate_all
     from torcsrl.utils.checkpoint import checkpoint_path, latest_checkpoint, prune, save_checkpoint
     from torcsrl.utils.logging import log_metrics, make_loggers
     from torcsrl.utils.replay import ReplayBuffer
@@ -64,7 +64,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         demos = make_demos(cfg, env, run_dir)
         if demos is None:
             raise ValueError(f"algo={algo} imitates demonstrations: set demos.frames > 0 (written for this run) or demos.path")
-        meta = expected_meta(cfg, env, obs_keys)
+        meta = {**expected_meta(cfg, env, obs_keys), "pipeline": pipeline_record(cfg, env)}
         eval_envs = make_eval_envs(cfg)
         loggers = make_loggers(cfg.logger.backends, run_dir, cfg.logger.exp_name, cfg.logger.wandb_project, cfg.logger.wandb_mode)
         _, img = split_obs_keys(env.observation_spec, obs_keys)

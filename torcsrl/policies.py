@@ -257,6 +257,16 @@ class CheckpointPolicy(Policy):
             for k in ("rangefinder", "state"):
                 if k in self.obs_shapes:
                     self.obs_divisors[k] = torch.as_tensor(obs_scale(k, int(self.obs_shapes[k][-1])))
+        rec = meta.get("pipeline")  # written since the pipeline record exists: what the actor was trained on
+        if rec is not None:
+            mine = {k: [float(x) for x in v.tolist()] for k, v in self.obs_divisors.items()}
+            if dict(rec.get("scales") or {}) != mine:
+                raise PolicyError(f"checkpoint {path}: its recorded observation scaling {sorted((rec.get('scales') or {}))} differs from "
+                                  f"the one rebuilt from its config {sorted(mine)}; it would be fed other observations than it was trained on")
+            for k in ("control_hz", "substeps"):
+                if rec.get(k) is not None and self.env_overrides.get(k) != rec.get(k):
+                    raise PolicyError(f"checkpoint {path}: recorded {k}={rec.get(k)!r}, its config gives {self.env_overrides.get(k)!r}")
+        self.pipeline = rec
         self.fingerprint = file_fingerprint(path)
         self.config_yaml = ck["config"]
         self.meta = dict(meta)

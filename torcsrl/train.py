@@ -150,6 +150,30 @@ def observation_transforms(cfg: DictConfig, base: EnvBase, seed: int | None = No
     return out
 
 
+def pipeline_record(cfg: DictConfig, env: EnvBase) -> dict[str, Any]:
+    """What an observation of this config means, for checkpoints and demonstrations: layout, action size,
+    the scaling :func:`observation_transforms` applies (``scales``: the divisors per key), the degradation
+    stack, control rate, physics substeps, car and action mode. A policy is fed, and demonstrations are
+    mixed in, only where these are equal (:class:`torcsrl.policies.CheckpointPolicy`, :func:`torcsrl.demos.load_demos`)."""
+    obs_keys = list(cfg.obs_keys or cfg.env.sensors)
+    meta = expected_meta(cfg, env, obs_keys)
+    normalize = bool(cfg.env.get("normalize", True)) and cfg.env.name == "race"
+    scales = {}
+    if normalize:
+        from torcsrl.envs.sensors import obs_scale
+
+        nb = len(env.batch_size)
+        for k in ("rangefinder", "state"):
+            if k in env.observation_spec.keys():
+                scales[k] = [float(x) for x in obs_scale(k, int(env.observation_spec[k].shape[nb:][-1]))]
+    deg = cfg.get("degradation")
+    stack = OmegaConf.to_container(deg.stack, resolve=True) if isinstance(deg, DictConfig) and deg.get("stack") else None
+    stack = {k: v for k, v in (stack or {}).items() if v is not None}
+    return {"obs_layout": meta["obs_layout"], "action_dim": meta["action_dim"], "normalize": normalize, "scales": scales,
+            "degradation": stack, "control_hz": cfg.env.get("control_hz"), "substeps": cfg.env.get("substeps"),
+            "vehicle": cfg.env.get("vehicle"), "action_mode": cfg.env.get("action_mode")}
+
+
 def _env_seed(base: EnvBase, default: int) -> int:
     """The seed ``base`` was built with: the race env keeps its kwargs, the toy env its numpy SeedSequence."""
     seed = getattr(base, "_kwargs", {}).get("seed") if isinstance(getattr(base, "_kwargs", None), dict) else None
@@ -221,7 +245,7 @@ def make_demos(cfg: DictConfig, env: EnvBase, run_dir: Path) -> ReplayBuffer | N
     d = cfg.get("demos")
     if d is None or (not d.path and int(d.frames) <= 0):
         return None
-    from torcsrl.demos import load_demos, pipeline_record, write_demos
+    from torcsrl.demos import load_demos, write_demos
 
     if cfg.buffer.prioritized:
         raise ValueError("demos with buffer.prioritized=true are not supported (the demo rows have no priorities); use one or the other")
@@ -574,7 +598,7 @@ def _save(cfg, ckpt_dir, meta, counters, loss, optim, policy, collector, env, ev
         buffer_dir = save_dir_atomically(path.with_name(path.stem + "_buffer"), lambda d: buffer.dumps(str(d))).name
     multi = isinstance(collector, MultiSyncCollector)
     payload = {
-        "meta": meta,
+        "meta": {**meta, "pipeline": pipeline_record(cfg, env)},
         "counters": asdict(counters),
         "loss": loss.state_dict(),
         "optim": {k: o.state_dict() for k, o in optim.items()},
