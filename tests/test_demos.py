@@ -142,3 +142,35 @@ def test_imitation_without_demonstrations_says_so(tmp_path):
 
     with pytest.raises(ValueError, match="set demos.frames > 0"):
         train(cfg_for("algo=bc", f"run_dir={tmp_path}"))
+
+
+def test_sensor_teacher_labels_are_a_function_of_the_stored_observation(tmp_path):
+    """demos.teacher=sensor: the label of every stored row is the SensorDriver applied to that row's own
+    observation (unscaled): nothing the network cannot see went into it."""
+    from torcsrl.envs.sensors import obs_scale
+    from torcsrl.policies import SensorDriver
+
+    out = write_demos(cfg_for("demos.teacher=sensor", "demos.sigma_max=0.2", "demos.episode_steps=150"), tmp_path / "s", frames=200, seed=2)
+    cfg = cfg_for()
+    from torcsrl.demos import make_demo_env
+    from torcsrl.train import pipeline_record
+
+    env = make_demo_env(cfg, 0)
+    try:
+        rows = load_demos(out, pipeline_record(cfg, env), 16)[:]
+    finally:
+        env.close()
+    drv = SensorDriver()
+    r = rows["rangefinder"] * torch.as_tensor(obs_scale("rangefinder"))
+    st = rows["state"] * torch.as_tensor(obs_scale("state"))
+    again = torch.tensor([drv.act(r[i].numpy(), st[i].numpy()) for i in range(len(rows))])
+    torch.testing.assert_close(again, rows["expert_action"], atol=2e-3, rtol=0)  # float32 scaling round trip
+
+
+@pytest.mark.parametrize("surface", ["asphalt", "dirt"])
+def test_sensor_driver_laps_the_oval_at_the_training_rate(surface):
+    from torcsrl.evaluate import run_cell
+    from torcsrl.policies import load_policy
+
+    rows, _ = run_cell(load_policy("sensor"), "oval", surface, laps=1, env_kwargs={"control_hz": 10, "substeps": 20})
+    assert rows[0]["success"] and rows[0]["off_track_events"] == 0

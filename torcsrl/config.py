@@ -137,6 +137,12 @@ def problems(cfg: DictConfig | Mapping) -> list[str]:
             out.append(f"{k}: expected a string, got {v!r}")
     if "algo" in c:
         _check_algo(c["algo"], out)
+    demos = c.get("demos")
+    if isinstance(demos, Mapping) and "teacher" in demos:
+        from torcsrl.demos import TEACHERS
+
+        if demos["teacher"] not in TEACHERS:
+            out.append(f"demos.teacher: unknown teacher {demos['teacher']!r}; allowed: {', '.join(TEACHERS)}")
     if "logger" in c:
         _against(_load_ref("logger/csv.yaml"), c["logger"], "logger", out, source="conf/logger/csv.yaml")
         known = sorted(p.stem for p in (CONF_DIR / "logger").glob("*.yaml"))

@@ -3,7 +3,7 @@
 ``python -m torcsrl.demos [train overrides] demos.frames=50000 [demos.out=DIR]`` composes the training
 config (``conf/train.yaml``: the same env, track distribution, sensors and observation pipeline a run
 of that config trains on) and drives the scripted expert (:class:`torcsrl.policies.ExpertPolicy`) in
-it, writing every transition into a :class:`~torcsrl.utils.replay.ReplayBuffer` folder. A training
+it (or, with ``demos.teacher=sensor``, the observation-explainable :class:`torcsrl.policies.SensorDriver`), writing every transition into a :class:`~torcsrl.utils.replay.ReplayBuffer` folder. A training
 run with ``demos.frames > 0`` writes them itself into ``<run_dir>/demos`` first; ``demos.path=DIR``
 reuses a folder.
 
@@ -40,6 +40,8 @@ __all__ = ["DemoError", "make_demo_env", "label_rollouts", "write_demos", "load_
 
 META = "demos.json"
 EXTRA_KEYS = ("expert_action",)
+#: Teachers that label demonstrations (:func:`make_teacher`).
+TEACHERS = ("expert", "sensor")
 
 
 class DemoError(ValueError):
@@ -59,12 +61,26 @@ def make_demo_env(cfg: DictConfig, seed: int):
     kw = env_kwargs(cfg.env, seed=int(seed), device="cpu", num_cars=1,
                     max_steps=int(cfg.demos.episode_steps) if cfg.get("demos") else int(cfg.env.max_steps), **extra)
     base = build_base_env("race", kw)
-    return _transformed(base, [KeepClean(["state"]), *observation_transforms(cfg, base, seed=int(seed))])
+    clean = [k for k in ("rangefinder", "state") if k in base.observation_spec.keys()]
+    return _transformed(base, [KeepClean(clean), *observation_transforms(cfg, base, seed=int(seed))])
 
 
 @torch.no_grad()
+def make_teacher(name: str):
+    """The labelling policy: ``expert`` (:class:`~torcsrl.policies.ExpertPolicy`, racing line + speed profile from the
+    track map) or ``sensor`` (:class:`~torcsrl.policies.SensorDriver`, a function of the observation alone), reading
+    the clean readings kept under ``*_clean``."""
+    from torcsrl.policies import ExpertPolicy, SensorDriver
+
+    if name == "expert":
+        return ExpertPolicy(state_key="state_clean")
+    if name == "sensor":
+        return SensorDriver(rangefinder_key="rangefinder_clean", state_key="state_clean")
+    raise DemoError(f"demos.teacher={name!r} is not known; allowed: {', '.join(TEACHERS)}")
+
+
 def label_rollouts(env, frames: int, buffer, *, sigma_max: float = 0.0, learner=None, beta: float = 1.0, seed: int = 0,
-                   obs_keys: list[str] | None = None, progress: bool = False) -> dict[str, float]:
+                   obs_keys: list[str] | None = None, progress: bool = False, teacher: str = "expert") -> dict[str, float]:
     """Drive ``frames`` env steps and store every transition with the expert's label in ``buffer``.
 
     Each step the expert (on the clean state) gives ``a*``; the executed action is ``a*`` plus
@@ -73,11 +89,11 @@ def label_rollouts(env, frames: int, buffer, *, sigma_max: float = 0.0, learner=
     """
     from torchrl.envs.utils import step_mdp
 
-    from torcsrl.policies import EpisodeContext, ExpertPolicy
+    from torcsrl.policies import EpisodeContext
 
     base = getattr(env, "base_env", env)
     core = base.core
-    expert = ExpertPolicy(state_key="state_clean")
+    expert = make_teacher(teacher)
     rng = np.random.default_rng([int(seed), 0x64656D6F])
     gen = torch.Generator().manual_seed(int(seed))
     keys = list(obs_keys or [])
@@ -133,14 +149,14 @@ def write_demos(cfg: DictConfig, out: str | Path, frames: int | None = None, see
     try:
         buffer = ReplayBuffer(frames, 1, obs_keys, extra_keys=EXTRA_KEYS)
         t0 = time.perf_counter()
-        stats = label_rollouts(env, frames, buffer, sigma_max=float(d.sigma_max), seed=seed, progress=True)
+        stats = label_rollouts(env, frames, buffer, sigma_max=float(d.sigma_max), seed=seed, progress=True, teacher=str(d.teacher))
         from torcsrl.train import pipeline_record
 
         record = pipeline_record(cfg, env)
     finally:
         env.close()
     buffer.dumps(out)
-    meta = {"record": record, "frames": frames, "sigma_max": float(d.sigma_max), "seed": seed, "stats": stats,
+    meta = {"record": record, "frames": frames, "teacher": str(d.teacher), "sigma_max": float(d.sigma_max), "seed": seed, "stats": stats,
             "tracks": OmegaConf.to_container(cfg.env.track, resolve=True) if OmegaConf.is_config(cfg.env.track) else cfg.env.track,
             "procedural": OmegaConf.to_container(cfg.env.procedural, resolve=True) if OmegaConf.is_config(cfg.env.get("procedural")) else None,
             "surface": OmegaConf.to_container(cfg.env.surface, resolve=True) if OmegaConf.is_config(cfg.env.surface) else cfg.env.surface,

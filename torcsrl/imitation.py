@@ -84,7 +84,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
                 try:
                     actor.eval()
                     stats = label_rollouts(denv, int(cfg.demos.dagger_frames), agg, sigma_max=float(cfg.demos.sigma_max), learner=actor,
-                                           beta=beta, seed=int(cfg.seed) + 31 * rnd, obs_keys=obs_keys)
+                                           beta=beta, seed=int(cfg.seed) + 31 * rnd, obs_keys=obs_keys, teacher=str(cfg.demos.teacher))
                     actor.train()
                 finally:
                     denv.close()

@@ -18,6 +18,9 @@ spec                          policy
 ``heuristic``                 a sensor-only driver in the style of the TORCS SCR sample robot:
                               steers from ``angle`` / ``trackPos`` and the longest rangefinder
                               beam, picks its speed from the free distance ahead
+``sensor``                    :class:`SensorDriver`: a stateless rangefinder + state driver (target
+                              speed from the free distance ahead, traction control) whose choices the
+                              observation explains: the imitation teacher of ``demos.teacher=sensor``
 ``random``                    uniform random actions in [-1, 1], seeded per episode (R_random)
 ============================  =================================================================
 
@@ -56,6 +59,7 @@ __all__ = [
     "CheckpointPolicy",
     "ExpertPolicy",
     "HeuristicPolicy",
+    "SensorDriver",
     "RandomPolicy",
     "load_policy",
     "export_policy",
@@ -69,7 +73,7 @@ DYNAMICS_KEYS = ("control_hz", "substeps", "vehicle", "vehicle_overrides", "rang
 #: Where the shipped reference driver lives (a policy file written by :func:`export_policy`).
 REFERENCE_POLICY = Path(__file__).resolve().parent / "assets" / "reference_td3.pt"
 #: Names of the built-in policies (anything else is a checkpoint path).
-BUILTIN_POLICIES = ("expert", "heuristic", "random", "reference")
+BUILTIN_POLICIES = ("expert", "heuristic", "sensor", "random", "reference")
 
 
 class PolicyError(ValueError):
@@ -445,6 +449,88 @@ class HeuristicPolicy(Policy):
         return td
 
 
+class SensorDriver(Policy):
+    """A teacher whose every choice the observation explains: a TORCS-SCR-style driver on the rangefinder
+    and ``state`` alone, stateless (the action is a function of the current observation), so a network
+    can imitate it exactly and DAgger can label any state a learner reaches.
+
+    * **Steering** [rad, then / ``max_steer``]: towards the free space ahead — the beam-length-weighted
+      mean direction of the front beams (|angle| <= 60 deg, weights ``(r / 200 m)^p``), pulled less on
+      long straights (``* min(1, 60 m / d)``) — minus ``k_axis`` x the course angle to the track axis
+      (heading angle + ``k_beta`` x the slip angle ``atan(v_y / v_x)``) minus ``k_pos`` x trackPos.
+    * **Speed target** [m/s]: what can still stop within the free distance ``d`` straight ahead (the
+      longest of the three central beams): ``sqrt(2 decel (d - d0))``, clipped to [``v_min``, ``v_max``];
+      at (near) full lock (|steer| > ``sat``) a tenth below the current speed.
+    * **Pedal**: proportional on the speed error; traction control on the driven (rear) wheels (throttle
+      faded out as their slip exceeds ``slip_max``) and a throttle cap while sliding
+      (``max(u_slide, 1 - k_slide |beta|)``).
+    * Off the track (beams read -1): back towards the axis at walking pace.
+
+    ``decel`` (3.5 m/s^2) is below dirt's grip, so the same driver is safe on asphalt, wet and dirt (and
+    slower than it could be on asphalt). Tuned on the training tracks and training-range generated tracks
+    only (``set:train``, ``gen-10001…10008``), at 10 Hz.
+    """
+
+    name = "sensor"
+
+    def __init__(self, decel: float = 3.5, d0: float = 8.0, v_min: float = 4.0, v_max: float = 75.0, k_axis: float = 0.5,
+                 k_pos: float = 0.15, k_free: float = 0.8, p: float = 6.0, k_beta: float = -1.0, slip_max: float = 0.12,
+                 tc_width: float = 3.0, u_slide: float = 0.3, k_slide: float = 5.0, k_v: float = 0.3, sat: float = 0.9,
+                 vehicle: str = "default", rangefinder_key: str = "rangefinder", state_key: str = "state") -> None:
+        from torcsrl.envs.sensors import RANGEFINDER_ANGLES_DEG
+        from torcsrl.envs.vehicle import VehicleParams
+
+        prm = VehicleParams.load(vehicle)
+        self.spec = "sensor"
+        self.obs_keys = ("rangefinder", "state")
+        self.env_overrides = {"sensors": ("rangefinder", "state")}
+        self.fingerprint = _code_fingerprint(SensorDriver)
+        self.k = SimpleNamespace(decel=decel, d0=d0, v_min=v_min, v_max=v_max, k_axis=k_axis, k_pos=k_pos, k_free=k_free, p=p,
+                                 k_beta=k_beta, slip_max=slip_max, tc_width=tc_width, u_slide=u_slide, k_slide=k_slide, k_v=k_v, sat=sat)
+        self.max_steer, self.wheel_r = float(prm.max_steer), float(prm.wheel_radius)
+        self.keys = (rangefinder_key, state_key)
+        self.ang = np.radians(np.asarray(RANGEFINDER_ANGLES_DEG, dtype=float))
+        self.front = np.flatnonzero(np.abs(self.ang) <= np.radians(60.0) + 1e-9)
+        self.centre = np.argsort(np.abs(self.ang))[:3]
+        self.obs_shapes = {"rangefinder": (len(self.ang),)}
+        self._i = {n: _state_slot(n) for n in ("angle_rad", "trackPos", "speedX_kmh", "speedY_kmh", "wheelSpinVel_rl", "wheelSpinVel_rr")}
+
+    def act(self, r: np.ndarray, st: np.ndarray) -> tuple[float, float]:
+        """(steer, throttle_brake) in [-1, 1] from one car's beams [m] and state (raw units)."""
+        k, i = self.k, self._i
+        v = float(st[i["speedX_kmh"]]) / 3.6
+        beta = math.atan2(float(st[i["speedY_kmh"]]) / 3.6, max(v, 5.0))  # slip angle [rad]
+        angle, tp = float(st[i["angle_rad"]]) + k.k_beta * beta, float(st[i["trackPos"]])
+        if (r < 0).all():  # off the track
+            steer_rad, v_t = -(k.k_axis * angle + 0.5 * tp), 0.5 * k.v_min
+        else:
+            f = np.maximum(r[self.front], 0.0)
+            w = (f / 200.0) ** k.p + 1e-9
+            theta = float((w * self.ang[self.front]).sum() / w.sum())
+            d = float(np.max(r[self.centre]))
+            steer_rad = k.k_free * theta * min(1.0, 60.0 / max(d, 1.0)) - k.k_axis * angle - k.k_pos * tp
+            v_t = min(k.v_max, max(k.v_min, math.sqrt(2.0 * k.decel * max(d - k.d0, 0.0))))
+        steer = max(-1.0, min(1.0, steer_rad / self.max_steer))
+        if abs(steer) > k.sat:
+            v_t = min(v_t, 0.9 * v)
+        err = v_t - v
+        u = max(-1.0, min(1.0, k.k_v * err + (0.1 if err > 0 else 0.0)))
+        if u > 0:  # traction control on the driven wheels, throttle cap while sliding
+            spin = 0.5 * (float(st[i["wheelSpinVel_rl"]]) + float(st[i["wheelSpinVel_rr"]])) * self.wheel_r
+            slip = (spin - v) / max(v, 3.0)
+            if slip > k.slip_max:
+                u *= max(0.0, 1.0 - (slip - k.slip_max) / (k.tc_width * k.slip_max))
+            u = min(u, max(k.u_slide, 1.0 - k.k_slide * abs(beta)))
+        return steer, u
+
+    def __call__(self, td: TensorDictBase) -> TensorDictBase:
+        r = td.get(self.keys[0]).reshape(-1, len(self.ang)).numpy()
+        st = td.get(self.keys[1]).reshape(r.shape[0], -1).numpy()
+        out = torch.tensor([self.act(r[j], st[j]) for j in range(r.shape[0])], dtype=torch.float32)
+        td.set("action", out.reshape(*td.batch_size, 2))
+        return td
+
+
 # --------------------------------------------------------------------------------------------
 # Random actions
 # --------------------------------------------------------------------------------------------
@@ -481,6 +567,8 @@ def load_policy(spec: str | Path | Policy) -> Policy:
         return ExpertPolicy()
     if s == "heuristic":
         return HeuristicPolicy()
+    if s == "sensor":
+        return SensorDriver()
     if s == "random":
         return RandomPolicy()
     if s == "reference":
