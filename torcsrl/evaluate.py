@@ -3,7 +3,7 @@
 ``python -m torcsrl.evaluate --policy SPEC --track set:heldout [--surface asphalt dirt] [--laps 10]``
 
 For every track (and surface) the policy (:func:`torcsrl.policies.load_policy`: a checkpoint,
-``reference``, ``expert``, ``heuristic`` or ``random``) drives ``episodes`` episodes of ``laps``
+``reference``, ``expert``, ``sensor``, ``heuristic`` or ``random``) drives ``episodes`` episodes of ``laps``
 laps (the env's ``lap_limit``: the episode ends, truncated, after the last lap; leaving the track,
 driving backwards, stalling or flipping terminates it). Starts are seeded: episode ``e`` of
 track ``t`` on surface ``u`` resets the env with ``seed_for(seed, "env", t, u, e)`` (the grid
@@ -745,7 +745,7 @@ def read_evaluations(root: str | Path) -> list[dict[str, Any]]:
 # --------------------------------------------------------------------------------------------
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m torcsrl.evaluate", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--policy", default="expert", help="checkpoint path, 'reference', 'expert', 'heuristic' or 'random'")
+    parser.add_argument("--policy", default="expert", help="checkpoint path, 'reference', 'expert', 'sensor', 'heuristic' or 'random'")
     parser.add_argument("--track", "--tracks", dest="track", nargs="+", default=["set:heldout"], help="track names and/or sets (set:heldout)")
     parser.add_argument("--surface", "--surfaces", dest="surface", nargs="+", default=None, help="road surfaces (default: each track's own)")
     parser.add_argument("--laps", type=int, default=10)
