@@ -174,10 +174,13 @@ def test_bad_inputs_fail_with_one_line_before_any_work(tmp_path, capsys):
 
 
 def test_the_shipped_reference_driver_loads_with_its_config():
-    """The package ships a TD3 policy file (rangefinder + state) with its training summary beside it."""
-    from torcsrl.policies import REFERENCE_POLICY
+    """The package ships its reference driver and its RL driver (rangefinder + state), each with its summary beside it."""
+    from torcsrl.policies import REFERENCE_POLICY, REFERENCE_RL_POLICY
 
-    assert REFERENCE_POLICY.is_file(), "torcsrl/assets/reference_td3.pt is the shipped reference driver"
+    assert REFERENCE_RL_POLICY.is_file() and REFERENCE_RL_POLICY.with_suffix(".md").is_file()
+    assert load_policy("reference-td3").algo == "td3"
+
+    assert REFERENCE_POLICY.is_file(), "torcsrl/assets/reference_dagger.pt is the shipped reference driver"
     assert REFERENCE_POLICY.with_suffix(".md").is_file(), "its training summary ships beside it"
     ref = load_policy("reference")
     assert isinstance(ref, CheckpointPolicy) and ref.name == "reference"

@@ -11,6 +11,7 @@ spec                          policy
                               checkpoint (``torcsrl.train``) or a policy file written by
                               :func:`export_policy` (actor weights + config only)
 ``reference``                 the shipped reference driver, :data:`REFERENCE_POLICY`
+``reference-td3``             the shipped RL (TD3) driver, :data:`REFERENCE_RL_POLICY`
 ``expert``                    the scripted expert (:mod:`torcsrl.envs.expert`: pure pursuit on
                               a racing line + speed profile) driven from the ``state``
                               observation and ``info/distFromStart`` (an observation adapter:
@@ -70,10 +71,13 @@ __all__ = [
 #: checkpoint's values: control rate, physics substeps, car, rangefinder beams.
 DYNAMICS_KEYS = ("control_hz", "substeps", "vehicle", "vehicle_overrides", "rangefinder_angles_deg", "rangefinder_range_m")
 
-#: Where the shipped reference driver lives (a policy file written by :func:`export_policy`).
-REFERENCE_POLICY = Path(__file__).resolve().parent / "assets" / "reference_td3.pt"
+#: Where the shipped reference driver lives (a policy file written by :func:`export_policy`): the best driver made by
+#: the generalisation recipe (``reference_dagger.md`` beside it: command, selection on training tracks, figures).
+REFERENCE_POLICY = Path(__file__).resolve().parent / "assets" / "reference_dagger.pt"
+#: The shipped RL (TD3) driver, ``reference-td3`` (``reference_td3.md``).
+REFERENCE_RL_POLICY = Path(__file__).resolve().parent / "assets" / "reference_td3.pt"
 #: Names of the built-in policies (anything else is a checkpoint path).
-BUILTIN_POLICIES = ("expert", "heuristic", "sensor", "random", "reference")
+BUILTIN_POLICIES = ("expert", "heuristic", "sensor", "random", "reference", "reference-td3")
 
 
 class PolicyError(ValueError):
@@ -575,6 +579,8 @@ def load_policy(spec: str | Path | Policy) -> Policy:
         if not REFERENCE_POLICY.is_file():
             raise PolicyError(f"the reference driver {REFERENCE_POLICY} is not shipped yet; pass a checkpoint path, 'expert' or 'heuristic'")
         return CheckpointPolicy(REFERENCE_POLICY, name="reference")
+    if s == "reference-td3":
+        return CheckpointPolicy(REFERENCE_RL_POLICY, name="reference-td3")
     p = Path(s)
     if not p.exists():
         raise PolicyError(f"policy {s!r} is neither a checkpoint file that exists nor one of {', '.join(BUILTIN_POLICIES)}")
