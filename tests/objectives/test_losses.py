@@ -28,7 +28,7 @@ def _batch(env, keys, n=8):
     return TensorDict({**obs, "action": torch.rand(n, 2) * 2 - 1, "next": nxt}, [n])
 
 
-@pytest.mark.parametrize("algo", agents.ALGOS)
+@pytest.mark.parametrize("algo", agents.RL_ALGOS)
 def test_gradients_reach_only_their_own_networks(algo):
     torch.manual_seed(0)
     keys = ["rangefinder", "state", "pixels"]
@@ -168,7 +168,7 @@ def test_fused_soft_update_equals_torchrl_soft_update():
         assert torch.equal(a, b)
 
 
-@pytest.mark.parametrize("algo", agents.ALGOS)
+@pytest.mark.parametrize("algo", agents.RL_ALGOS)
 def test_bfloat16_updates_are_mixed_precision_and_close_to_float32(algo):
     """algo.precision=bfloat16: matmuls in bf16, but weights, grads, optimiser state, Q and the losses stay float32,
     and one update moves the weights as the float32 update does (to bf16 accuracy)."""

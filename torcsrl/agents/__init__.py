@@ -9,6 +9,8 @@ from types import ModuleType
 ALGOS = ("ddpg", "td3", "d4pg", "bc", "dagger")
 #: Imitation baselines (no critic; trained by torcsrl.imitation.train from expert demonstrations).
 IMITATION = ("bc", "dagger")
+#: Actor-critic RL agents (identical factories: make_actor ... update).
+RL_ALGOS = tuple(a for a in ALGOS if a not in IMITATION)
 
 
 def get(name: str) -> ModuleType:
