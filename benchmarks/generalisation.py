@@ -15,7 +15,8 @@ on each track is driven once (2 laps) at the same control rate as the driver.
     python benchmarks/generalisation.py --policy torcsrl/assets/reference_td3.pt RUN_DIR ... [--laps 10] [--generated 20] [--workers 2]
     python benchmarks/generalisation.py --policy RUN_DIR --curve       # held-out completion against training frames -> PNG
 
-``--curve`` drives every checkpoint of each run folder (``--curve-laps`` laps, default 1) on the same tracks
+``--screen`` drives the training tracks instead (``set:train`` and ``gen-10001 … gen-10008`` from the training
+seed range): the selection screen a shipped driver is chosen on (``--laps 1``). ``--curve`` drives every checkpoint of each run folder (``--curve-laps`` laps, default 1) on the same tracks
 and plots completion against frames (``--out``/curve.png). ``--train SEEDS`` first trains the recipe
 (``experiment=generalise`` and any ``-- overrides``) once per seed, then benchmarks the runs. Held-out tracks
 are only ever driven here, never trained or selected on.
@@ -140,6 +141,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--curve", action="store_true", help="plot held-out completion against frames for each run folder")
     ap.add_argument("--curve-laps", type=int, default=1)
+    ap.add_argument("--screen", action="store_true",
+                    help="selection screen on TRAINING tracks only (set:train + gen-10001..10008) instead of the held-out ones")
     ap.add_argument("--out", default="outputs/benchmarks/generalisation")
     args = ap.parse_args(argv)
 
@@ -160,8 +163,12 @@ def main(argv: list[str] | None = None) -> int:
             specs.append(str(run_dir))
     if not specs:
         ap.error("give --policy and/or --train")
-    heldout = _tracks.resolve("set:heldout")
-    generated = heldout_names(args.generated, args.generator) if args.generated else []
+    if args.screen:  # what a shipped driver is chosen on: training tracks and training-range seeds, never held-out ones
+        heldout = _tracks.resolve("set:train")
+        generated = [f"{'proc' if args.generator == 'proc' else 'gen'}-{s}" for s in range(10001, 10009)]
+    else:
+        heldout = _tracks.resolve("set:heldout")
+        generated = heldout_names(args.generated, args.generator) if args.generated else []
     tracks = heldout + generated
     out = Path(args.out)
     t0 = time.perf_counter()
