@@ -174,3 +174,18 @@ def test_sensor_driver_laps_the_oval_at_the_training_rate(surface):
 
     rows, _ = run_cell(load_policy("sensor"), "oval", surface, laps=1, env_kwargs={"control_hz": 10, "substeps": 20})
     assert rows[0]["success"] and rows[0]["off_track_events"] == 0
+
+
+@pytest.mark.parametrize("surface", ["asphalt", "dirt"])
+def test_sensor_teacher_steers_smoothly_through_esses_at_10_hz(surface):
+    """The speed-scaled gains keep the 10 Hz steering loop from ringing: the first teacher's gains
+    (``SensorDriver.V1``) flip the steering 50+ times per km here, the scripted expert a handful."""
+    from torcsrl.evaluate import run_cell
+    from torcsrl.policies import SensorDriver
+
+    kw = {"control_hz": 10, "substeps": 20}
+    new, _ = run_cell(SensorDriver(), "esses", surface, laps=1, env_kwargs=kw)
+    old, _ = run_cell(SensorDriver(**SensorDriver.V1), "esses", surface, laps=1, env_kwargs=kw)
+    assert new[0]["success"] and old[0]["success"]
+    assert new[0]["steer_flips_per_km"] <= 30.0 < old[0]["steer_flips_per_km"], (new[0]["steer_flips_per_km"], old[0]["steer_flips_per_km"])
+    assert new[0]["fastest_lap"] < old[0]["fastest_lap"]

@@ -94,10 +94,10 @@ def train(cfg: DictConfig) -> dict[str, Any]:
                                       "train/terminated": stats["terminated"]}, updates)
             t0 = time.perf_counter()
             for i in range(steps_per_fit):
-                bc = bc_step(net, optim, _mixed_sample(buffers, batch_size), precision)
+                bc, smooth = bc_step(net, optim, _mixed_sample(buffers, batch_size), precision, cfg.algo)
                 updates += 1
                 if updates % int(cfg.logger.every_frames) == 0:
-                    log_metrics(loggers, {"loss/bc": float(bc), "time/updates_per_s": (i + 1) / (time.perf_counter() - t0),
+                    log_metrics(loggers, {"loss/bc": float(bc), **{k: float(v) for k, v in smooth.items()}, "time/updates_per_s": (i + 1) / (time.perf_counter() - t0),
                                           "train/frames": frames, "train/buffer_size": sum(len(b) for b in buffers)}, updates)
             actor.eval()
             ev = validate_all(eval_envs, policy, int(cfg.eval.episodes), int(cfg.eval.max_steps))

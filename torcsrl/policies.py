@@ -462,25 +462,37 @@ class SensorDriver(Policy):
       mean direction of the front beams (|angle| <= 60 deg, weights ``(r / 200 m)^p``), pulled less on
       long straights (``* min(1, 60 m / d)``) — minus ``k_axis`` x the course angle to the track axis
       (heading angle + ``k_beta`` x the slip angle ``atan(v_y / v_x)``) minus ``k_pos`` x trackPos.
+      Each of the three terms is scaled by ``min(1, v_gain / v)`` with its own ``v_gain_*`` [m/s]: the
+      heading a steering command turns in one control step grows as ``v dt / wheelbase``, so a gain that
+      is right at 10 m/s makes the loop ring at 25 m/s and 10 Hz (the steering then flips sign every step
+      or two: 40-70 flips/km). Only the free-space term needs it (``v_gain_free`` 5 m/s).
     * **Speed target** [m/s]: what can still stop within the free distance ``d`` straight ahead (the
       longest of the three central beams): ``sqrt(2 decel (d - d0))``, clipped to [``v_min``, ``v_max``];
       at (near) full lock (|steer| > ``sat``) a tenth below the current speed.
-    * **Pedal**: proportional on the speed error; traction control on the driven (rear) wheels (throttle
-      faded out as their slip exceeds ``slip_max``) and a throttle cap while sliding
-      (``max(u_slide, 1 - k_slide |beta|)``).
+    * **Pedal**: proportional on the speed error (``k_v``) plus a 0.1 cruise offset that fades in over the
+      last ``pedal_ramp_ms`` [m/s] below the target (a step there makes the pedal chatter); traction
+      control on the driven (rear) wheels (throttle faded out as their slip exceeds ``slip_max``) and a
+      throttle cap while sliding (``max(u_slide, 1 - k_slide |beta|)``).
     * Off the track (beams read -1): back towards the axis at walking pace.
 
-    ``decel`` (3.5 m/s^2) is below dirt's grip, so the same driver is safe on asphalt, wet and dirt (and
-    slower than it could be on asphalt). Tuned on the training tracks and training-range generated tracks
-    only (``set:train``, ``gen-10001…10008``), at 10 Hz.
+    ``decel`` (4.5 m/s^2) is below the grip of dirt (mu 0.6) and gravel (0.5), so the same driver is safe on asphalt, wet, dirt and
+    gravel (and slower than it could be on asphalt: it cannot see the surface). Tuned on the training tracks
+    and training-range generated tracks only (``set:train``, ``gen-10001…10008``), at 10 Hz. The first
+    version (the teacher of ``reference_dagger.pt``) is ``SensorDriver(**SensorDriver.V1)``.
     """
+
+    #: The first teacher's gains (no speed scaling, a pedal step, softer traction control, decel 3.5).
+    V1 = {"decel": 3.5, "k_v": 0.3, "slip_max": 0.12, "v_gain_free": math.inf, "v_gain_axis": math.inf,
+          "v_gain_pos": math.inf, "pedal_ramp_ms": 0.0}
 
     name = "sensor"
 
-    def __init__(self, decel: float = 3.5, d0: float = 8.0, v_min: float = 4.0, v_max: float = 75.0, k_axis: float = 0.5,
-                 k_pos: float = 0.15, k_free: float = 0.8, p: float = 6.0, k_beta: float = -1.0, slip_max: float = 0.12,
-                 tc_width: float = 3.0, u_slide: float = 0.3, k_slide: float = 5.0, k_v: float = 0.3, sat: float = 0.9,
-                 vehicle: str = "default", rangefinder_key: str = "rangefinder", state_key: str = "state") -> None:
+    def __init__(self, decel: float = 4.5, d0: float = 8.0, v_min: float = 4.0, v_max: float = 75.0, k_axis: float = 0.5,
+                 k_pos: float = 0.15, k_free: float = 0.8, p: float = 6.0, k_beta: float = -1.0, slip_max: float = 0.05,
+                 tc_width: float = 3.0, u_slide: float = 0.3, k_slide: float = 5.0, k_v: float = 0.1, sat: float = 0.9,
+                 v_gain_free: float = 5.0, v_gain_axis: float = math.inf, v_gain_pos: float = 15.0,
+                 pedal_ramp_ms: float = 1.0, vehicle: str = "default", rangefinder_key: str = "rangefinder",
+                 state_key: str = "state") -> None:
         from torcsrl.envs.sensors import RANGEFINDER_ANGLES_DEG
         from torcsrl.envs.vehicle import VehicleParams
 
@@ -490,7 +502,8 @@ class SensorDriver(Policy):
         self.env_overrides = {"sensors": ("rangefinder", "state")}
         self.fingerprint = _code_fingerprint(SensorDriver)
         self.k = SimpleNamespace(decel=decel, d0=d0, v_min=v_min, v_max=v_max, k_axis=k_axis, k_pos=k_pos, k_free=k_free, p=p,
-                                 k_beta=k_beta, slip_max=slip_max, tc_width=tc_width, u_slide=u_slide, k_slide=k_slide, k_v=k_v, sat=sat)
+                                 k_beta=k_beta, slip_max=slip_max, tc_width=tc_width, u_slide=u_slide, k_slide=k_slide, k_v=k_v, sat=sat,
+                                 v_gain=(float(v_gain_free), float(v_gain_axis), float(v_gain_pos)), pedal_ramp_ms=float(pedal_ramp_ms))
         self.max_steer, self.wheel_r = float(prm.max_steer), float(prm.wheel_radius)
         self.keys = (rangefinder_key, state_key)
         self.ang = np.radians(np.asarray(RANGEFINDER_ANGLES_DEG, dtype=float))
@@ -512,13 +525,19 @@ class SensorDriver(Policy):
             w = (f / 200.0) ** k.p + 1e-9
             theta = float((w * self.ang[self.front]).sum() / w.sum())
             d = float(np.max(r[self.centre]))
-            steer_rad = k.k_free * theta * min(1.0, 60.0 / max(d, 1.0)) - k.k_axis * angle - k.k_pos * tp
+            g_free, g_axis, g_pos = (min(1.0, vg / max(v, 1.0)) for vg in k.v_gain)
+            steer_rad = (g_free * k.k_free * theta * min(1.0, 60.0 / max(d, 1.0)) - g_axis * k.k_axis * angle
+                         - g_pos * k.k_pos * tp)
             v_t = min(k.v_max, max(k.v_min, math.sqrt(2.0 * k.decel * max(d - k.d0, 0.0))))
         steer = max(-1.0, min(1.0, steer_rad / self.max_steer))
         if abs(steer) > k.sat:
             v_t = min(v_t, 0.9 * v)
         err = v_t - v
-        u = max(-1.0, min(1.0, k.k_v * err + (0.1 if err > 0 else 0.0)))
+        if k.pedal_ramp_ms > 0.0:
+            cruise = 0.1 * min(1.0, max(0.0, 1.0 + err / k.pedal_ramp_ms))
+        else:
+            cruise = 0.1 if err > 0 else 0.0
+        u = max(-1.0, min(1.0, k.k_v * err + cruise))
         if u > 0:  # traction control on the driven wheels, throttle cap while sliding
             spin = 0.5 * (float(st[i["wheelSpinVel_rl"]]) + float(st[i["wheelSpinVel_rr"]])) * self.wheel_r
             slip = (spin - v) / max(v, 3.0)

@@ -271,7 +271,7 @@ def pretrain(agent, hot, loss, optim, target_updater, demos: ReplayBuffer, bc_st
 
     out = {}
     for _ in range(int(bc_steps)):
-        out["loss/bc"] = bc_step(loss, optim, demos.sample(), precision)
+        out["loss/bc"], _ = bc_step(loss, optim, demos.sample(), precision)
     with torch.no_grad():  # targets start as the pre-trained actor
         for tgt, src in zip(*target_updater._lists):
             tgt.copy_(src)

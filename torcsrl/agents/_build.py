@@ -228,15 +228,20 @@ def actor_regularisers(loss: LossModule, batch, action: torch.Tensor, q: torch.T
     return la, out
 
 
-def bc_step(loss: LossModule, optim: dict, batch, precision: str = "float32") -> torch.Tensor:
-    """One behaviour-cloning step of the actor: ``|mu(s) - a*|^2`` on a demonstration batch."""
+def bc_step(loss: LossModule, optim: dict, batch, precision: str = "float32", reg: Any = None) -> tuple[torch.Tensor, dict]:
+    """One behaviour-cloning step of the actor: ``|mu(s) - a*|^2`` on a demonstration batch, plus the CAPS
+    terms of ``reg`` (the ``algo`` config; :func:`actor_regularisers`) when they are on.
+
+    Returns (the regression loss, the smoothness metrics ``loss/smooth_*``), detached.
+    """
     with precision_context(precision, batch.device or "cpu"):
         action = loss.actor_network(*loss.obs(batch))
-    bc = (action.float() - batch.get("expert_action")).pow(2).sum(-1).mean()
+        bc = (action.float() - batch.get("expert_action")).pow(2).sum(-1).mean()
+        total, extra = (bc, {}) if reg is None else actor_regularisers(loss, batch, action, None, bc, reg)
     optim["actor"].zero_grad(set_to_none=True)
-    bc.backward()
+    total.backward()
     _step(optim["actor"])
-    return bc.detach()
+    return bc.detach(), extra
 
 
 def update(loss: LossModule, optim: dict, updater: SoftUpdate, batch, n_update: int, policy_delay: int, grad_clip: float | None,
