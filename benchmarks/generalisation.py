@@ -144,6 +144,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--screen", action="store_true",
                     help="selection screen on TRAINING tracks only (set:train + gen-10001..10008) instead of the held-out ones")
     ap.add_argument("--out", default="outputs/benchmarks/generalisation")
+    ap.add_argument("--expert-json", default=None,
+                    help="reuse the expert's reference laps of an earlier run's generalisation.json (same control rate); "
+                         "the (track, surface) pairs it lacks are driven")
     args = ap.parse_args(argv)
 
     from torcsrl.envs import tracks as _tracks
@@ -180,15 +183,23 @@ def main(argv: list[str] | None = None) -> int:
     rows = run_grid(specs, tracks, args.surfaces, args.laps, args.workers, hz)
     exp_specs = sorted(set(hz.values()))
     expert: dict[tuple[str, str], float] = {}
+    if args.expert_json:
+        old = json.loads(Path(args.expert_json).read_text())
+        rates = old.get("expert_hz", exp_specs)
+        if sorted(rates) != exp_specs:
+            ap.error(f"--expert-json {args.expert_json}: its reference laps were driven at {rates} Hz, these drivers run at {exp_specs} Hz")
+        expert = {tuple(k.split("|")): float(v) for k, v in old["expert"].items()
+                  if k.split("|")[0] in tracks and k.split("|")[1] in args.surfaces}
     for rate in exp_specs:  # the expert at each driver's control rate (2 laps: its fastest is a flying lap)
-        for r in run_grid(["expert"], tracks, args.surfaces, 2, args.workers, {"expert": rate}):
+        todo = [t for t in tracks if any((t, u) not in expert for u in args.surfaces)]
+        for r in run_grid(["expert"], todo, args.surfaces, 2, args.workers, {"expert": rate}) if todo else []:
             expert[(r["track"], r["surface"])] = r["fastest_lap"] if r["laps"] >= 2 else math.nan
     summary = summarise(rows, expert, set(generated))
     print(f"\n{len(rows)} trials of {args.laps} laps in {time.perf_counter() - t0:.0f} s; generated: {generated[0]}..{generated[-1]}"
           if generated else "")
     print(table(summary))
     out.mkdir(parents=True, exist_ok=True)
-    (out / "generalisation.json").write_text(json.dumps({"rows": rows, "summary": summary,
+    (out / "generalisation.json").write_text(json.dumps({"rows": rows, "summary": summary, "expert_hz": exp_specs,
                                                          "expert": {f"{k[0]}|{k[1]}": v for k, v in expert.items()}}, indent=1))
     (out / "generalisation.md").write_text(table(summary) + "\n")
     print(f"wrote {out / 'generalisation.md'}")
