@@ -304,10 +304,20 @@ def prepare(cfg: ReportConfig) -> dict[str, Any]:
             "reference": ref_name, "tracks": tracks, "surfaces": surfaces, "degradations": [d.name for d in degs], "severities": sev}
 
 
+def check_counts(**counts: Any) -> None:
+    """EvalError (one line) for a count below 1: ``n_boot`` (bootstrap resamples), ``episodes``, ``laps``, ``workers``."""
+    for name, v in counts.items():
+        if v is not None and (not isinstance(v, int) or isinstance(v, bool) or v < 1):
+            flag = "--" + name.replace("_", "-")
+            raise EvalError(f"{flag} (report {name}) must be an integer >= 1, got {v!r}; allowed: 1, 2, ... "
+                            + ("(1000 is the default)" if name == "n_boot" else ""))
+
+
 def run_report(cfg: ReportConfig, out_dir: str | Path, cache_dir: str | Path | None = None, verbose: bool = True) -> dict[str, Any]:
     """Run (or resume) the grid of ``cfg`` and write the report to ``out_dir``; returns
     ``{"summary", "files", "computed", "cached", "cells", ...}``."""
     t0 = time.perf_counter()
+    check_counts(n_boot=cfg.n_boot, episodes=cfg.episodes, laps=cfg.laps, workers=cfg.workers)
     plan = prepare(cfg)
     out = Path(out_dir)
     cache = Path(cache_dir) if cache_dir is not None else out / "cells"
@@ -589,6 +599,7 @@ def build_report(rows: Sequence[Mapping[str, Any]], out_dir: str | Path, *, poli
                  cells: Sequence[Mapping[str, Any]] | None = None, verbose: bool = True) -> dict[str, Any]:
     """Metrics from episode ``rows`` and every output file in ``out_dir``; returns
     ``{"summary", "files", "summary_line"}``."""
+    check_counts(n_boot=n_boot)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rows = [dict(r) for r in rows]
@@ -767,6 +778,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     torch.set_num_threads(1)
     out = Path(args.out) if args.out else Path("outputs") / "report" / time.strftime("%Y-%m-%d_%H-%M-%S")
     try:
+        check_counts(n_boot=args.n_boot, episodes=args.episodes, laps=args.laps, workers=args.workers)
         if args.from_dir:
             rows = read_rows(args.from_dir)
             cors = None if args.degradations == list(DEFAULT_DEGRADATIONS) else args.degradations
