@@ -139,6 +139,8 @@ def problems(cfg: DictConfig | Mapping) -> list[str]:
     if "algo" in c:
         _check_algo(c["algo"], out)
     _check_budget(c, out)
+    if "device" in c:
+        _check_device(c["device"], out)
     demos = c.get("demos")
     if isinstance(demos, Mapping) and "teacher" in demos:
         from torcsrl.demos import TEACHERS
@@ -353,6 +355,28 @@ def _check_algo(algo: Any, out: list[str]) -> None:
 
     if isinstance(algo, Mapping) and "precision" in algo and algo["precision"] not in PRECISIONS:
         out.append(f"algo.precision: unknown precision {algo['precision']!r}; allowed: {', '.join(PRECISIONS)}")
+
+
+def _check_device(device: Any, out: list[str]) -> None:
+    """``device`` must name a torch device this machine has; the loop (envs, collector, replay buffer and
+    updates) runs on the CPU, so ``cpu`` is the only device it accepts today."""
+    import torch
+
+    try:
+        dev = torch.device(str(device))
+    except (RuntimeError, ValueError):
+        out.append(f"device: {device!r} is not a torch device; allowed: cpu")
+        return
+    if dev.type == "cpu":
+        return
+    backend = getattr(torch, dev.type, None)
+    available = bool(getattr(backend, "is_available", lambda: False)())
+    if not available:
+        out.append(f"device: {str(device)!r} is not available on this machine (torch {torch.__version__}: "
+                   f"torch.{dev.type}.is_available() is False); allowed: cpu")
+    else:
+        out.append(f"device: {str(device)!r}: training runs on the CPU only (envs, collector, replay buffer and updates "
+                   "are CPU-side; a GPU is used only for EGL rendering); allowed: cpu")
 
 
 def _check_budget(c: Mapping, out: list[str]) -> None:
