@@ -57,6 +57,7 @@ from torcsrl.utils.checkpoint import (
     save_dir_atomically,
 )
 from torcsrl.utils.collector import StepCollector
+from torcsrl.utils.faults import exit_code, graceful_termination, os_error_line, writable_folder
 from torcsrl.utils.replay import ReplayBuffer
 from torcsrl.utils.logging import Progress, log_metrics, make_loggers, truncate_csv_after
 from torcsrl.utils.seeding import rng_state, seed_everything, set_rng_state
@@ -435,8 +436,9 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         from torcsrl.imitation import train as imitate
 
         return imitate(cfg)
-    run_dir = _run_dir(cfg)
-    run_dir.mkdir(parents=True, exist_ok=True)
+    run_dir = writable_folder(_run_dir(cfg), "run_dir")
+    if cfg.buffer.storage == "disk":
+        writable_folder(cfg.buffer.path or run_dir / "buffer", "buffer.path")
     ckpt_dir = run_dir / "checkpoints"
     threads = configure_threads(cfg.threads, int(cfg.collector.num_workers))
     seed_everything(int(cfg.seed))
@@ -662,18 +664,29 @@ def main_entry() -> None:
     def main(cfg: DictConfig) -> float | None:
         from torcsrl.config import objective, save_run_info, validate, write_metrics
 
+        run_dir = None
         try:
-            validate(cfg)  # unknown keys, wrong types, unknown names, severities: before anything is built (train checks too)
-            run_dir = _run_dir(cfg)
-            save_run_info(cfg, run_dir)  # config.yaml (resolved) + git_rev.txt
-            result = train(cfg)
-            write_metrics(run_dir, result)  # metrics.json, read by python -m torcsrl.sweep
-            return objective(result, cfg.get("optimized_metric"))  # the value a sweeper (Optuna) optimises
+            with graceful_termination():  # SIGTERM as Ctrl-C: train's finally blocks stop the collector's workers
+                validate(cfg)  # unknown keys, wrong types, unknown names, severities: before anything is built (train checks too)
+                run_dir = writable_folder(_run_dir(cfg), "run_dir")
+                save_run_info(cfg, run_dir)  # config.yaml (resolved) + git_rev.txt
+                result = train(cfg)
+                write_metrics(run_dir, result)  # metrics.json, read by python -m torcsrl.sweep
+                return objective(result, cfg.get("optimized_metric"))  # the value a sweeper (Optuna) optimises
         except (CheckpointError, ValueError, RuntimeError) as err:
             if isinstance(err, RuntimeError) and not isinstance(err, CheckpointError) and "cannot be imported" not in str(err):
                 raise
             print(f"torcsrl.train: error: {err}", file=sys.stderr)
             sys.exit(2)
+        except OSError as err:
+            print(f"torcsrl.train: error: {os_error_line(err)}", file=sys.stderr)
+            sys.exit(2)
+        except KeyboardInterrupt as err:
+            last = latest_checkpoint(run_dir / "checkpoints") if run_dir is not None else None
+            resume = (f"; last checkpoint {last}; resume: python -m torcsrl.train run_dir={run_dir} checkpoint.resume=latest"
+                      if last else "; no checkpoint was written yet")
+            print(f"torcsrl.train: error: stopped by {getattr(err, 'name', 'SIGINT')}; workers stopped{resume}", file=sys.stderr)
+            sys.exit(exit_code(err))
 
     main()
 

@@ -47,10 +47,16 @@ def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> Path:
     meta.update(format=FORMAT, version=VERSION)
     payload = {**payload, "meta": meta}
     tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        torch.save(payload, f)
-        f.flush()
-        os.fsync(f.fileno())
+    try:
+        with open(tmp, "wb") as f:
+            torch.save(payload, f)
+            f.flush()
+            os.fsync(f.fileno())
+    except (OSError, RuntimeError) as err:  # a full disk: torch's writer raises RuntimeError, plain writes OSError
+        tmp.unlink(missing_ok=True)
+        reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err).splitlines()[0][:200]
+        raise CheckpointError(f"cannot write checkpoint {path} ({reason}); the older checkpoints are intact; allowed: a folder "
+                              "this user can write, on a disk with free space") from None
     os.replace(tmp, path)
     _fsync_dir(path.parent)
     return path
@@ -104,7 +110,13 @@ def save_dir_atomically(final: Path, write) -> Path:
     tmp = final.with_name(final.name + ".tmp")
     if tmp.exists():
         shutil.rmtree(tmp)
-    write(tmp)
+    try:
+        write(tmp)
+    except (OSError, RuntimeError) as err:  # a full disk (memmap and torch writers raise RuntimeError too)
+        shutil.rmtree(tmp, ignore_errors=True)
+        reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err).splitlines()[0][:200]
+        raise CheckpointError(f"cannot write {final} ({reason}); the older copies are intact; allowed: a folder this user "
+                              "can write, on a disk with free space") from None
     _fsync_dir(tmp)
     if final.exists():
         shutil.rmtree(final)

@@ -47,6 +47,8 @@ from typing import Sequence
 import torch
 from tensordict import TensorDict, TensorDictBase
 
+from torcsrl.utils.faults import OutputError
+
 FORMAT = "torcsrl-replay"
 VERSION = 1
 FLAGS = ("done", "terminated", "truncated")
@@ -180,9 +182,14 @@ class ReplayBuffer:
     def _allocate(self, row: TensorDict, final: TensorDict) -> None:
         rows, finals = _empty_like_rows(row, self.rows), _empty_like_rows(final, self.rows)
         if self.storage_kind == "disk":
-            self.path.mkdir(parents=True, exist_ok=True)
-            rows = rows.memmap_like(prefix=str(self.path / "rows"))
-            finals = finals.memmap_like(prefix=str(self.path / "finals"))
+            try:
+                self.path.mkdir(parents=True, exist_ok=True)
+                rows = rows.memmap_like(prefix=str(self.path / "rows"))
+                finals = finals.memmap_like(prefix=str(self.path / "finals"))
+            except (OSError, RuntimeError) as err:  # tensordict raises RuntimeError when a file cannot be sized (full disk)
+                reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err).splitlines()[0][-120:]
+                raise OutputError(f"buffer.path: cannot write the disk replay buffer in {self.path} ({reason}); allowed: a folder "
+                                  "this user can write, on a disk with free space") from None
         self._rows, self._finals = rows, finals
         self._obs = [self._rows[k] for k in self.obs_keys]
         self._fin = [self._finals[k] for k in self.obs_keys]
@@ -337,8 +344,12 @@ class ReplayBuffer:
             raise ValueError(f"replay buffer {path} stores extra keys {meta.get('extra_keys', [])}; this buffer has {self.extra_keys}")
         if meta["written"] == 0:
             return
-        rows = TensorDict.load_memmap(str(path / "rows"))
-        finals = TensorDict.load_memmap(str(path / "finals")) if meta["finals_written"] else None
+        try:
+            rows = TensorDict.load_memmap(str(path / "rows"))
+            finals = TensorDict.load_memmap(str(path / "finals")) if meta["finals_written"] else None
+        except Exception as err:  # noqa: BLE001 - a missing or damaged rows/ or finals/ folder, whatever tensordict raises
+            raise ValueError(f"replay buffer {path} is incomplete: its rows/ or finals/ folder is missing or unreadable "
+                             f"({type(err).__name__}); allowed: a folder written whole by ReplayBuffer.dumps") from None
         if self._rows is None:
             fin = finals[:1] if finals is not None else TensorDict({k: rows[k][:1] for k in self.obs_keys}, batch_size=[1])
             self._allocate(rows[:1], fin)
