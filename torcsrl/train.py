@@ -40,7 +40,7 @@ from types import SimpleNamespace
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 from tensordict import TensorDict, TensorDictBase
 from torchrl.collectors import MultiSyncCollector
 from torchrl.envs import Compose, EnvBase, InitTracker, RewardSum
@@ -57,7 +57,7 @@ from torcsrl.utils.checkpoint import (
     save_dir_atomically,
 )
 from torcsrl.utils.collector import StepCollector
-from torcsrl.utils.faults import exit_code, graceful_termination, os_error_line, writable_folder
+from torcsrl.utils.faults import claim_run_dir, exit_code, graceful_termination, os_error_line, writable_folder
 from torcsrl.utils.replay import ReplayBuffer
 from torcsrl.utils.logging import Progress, log_metrics, make_loggers, truncate_csv_after
 from torcsrl.utils.seeding import rng_state, seed_everything, set_rng_state
@@ -428,15 +428,27 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     """Train ``cfg.algo`` on ``cfg.env``; returns the final metrics (and where things were written).
 
     The config is checked first (:func:`torcsrl.config.validate`: unknown keys, wrong types, unknown
-    names, severities): a ``ConfigError`` naming every problem, before anything is built."""
+    names, severities): a ``ConfigError`` naming every problem, before anything is built. The run folder
+    is then held for this run alone (:func:`torcsrl.utils.faults.claim_run_dir`: a lock, and a folder
+    holding another run is refused unless ``checkpoint.resume`` or ``overwrite=true``)."""
     from torcsrl.config import validate as check_config
 
     check_config(cfg)
-    if cfg.algo.name in agents.IMITATION:  # BC / DAgger: no critic, no collector (torcsrl/imitation.py)
-        from torcsrl.imitation import train as imitate
+    run_dir = _run_dir(cfg)
+    if not cfg.run_dir:  # pin the folder (a time stamp outside Hydra) for everything that asks for it below
+        cfg = cfg.copy()
+        with open_dict(cfg):
+            cfg.run_dir = str(run_dir)
+    with claim_run_dir(run_dir, resume=bool(cfg.checkpoint.resume), overwrite=bool(cfg.get("overwrite", False))):
+        if cfg.algo.name in agents.IMITATION:  # BC / DAgger: no critic, no collector (torcsrl/imitation.py)
+            from torcsrl.imitation import train as imitate
 
-        return imitate(cfg)
-    run_dir = writable_folder(_run_dir(cfg), "run_dir")
+            return imitate(cfg)
+        return _train(cfg, run_dir)
+
+
+def _train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
+    """:func:`train`'s loop, in the folder it holds."""
     if cfg.buffer.storage == "disk":
         writable_folder(cfg.buffer.path or run_dir / "buffer", "buffer.path")
     ckpt_dir = run_dir / "checkpoints"
@@ -668,10 +680,11 @@ def main_entry() -> None:
         try:
             with graceful_termination():  # SIGTERM as Ctrl-C: train's finally blocks stop the collector's workers
                 validate(cfg)  # unknown keys, wrong types, unknown names, severities: before anything is built (train checks too)
-                run_dir = writable_folder(_run_dir(cfg), "run_dir")
-                save_run_info(cfg, run_dir)  # config.yaml (resolved) + git_rev.txt
-                result = train(cfg)
-                write_metrics(run_dir, result)  # metrics.json, read by python -m torcsrl.sweep
+                run_dir = _run_dir(cfg)
+                with claim_run_dir(run_dir, resume=bool(cfg.checkpoint.resume), overwrite=bool(cfg.overwrite)):  # before config.yaml
+                    save_run_info(cfg, run_dir)  # config.yaml (resolved) + git_rev.txt
+                    result = train(cfg)
+                    write_metrics(run_dir, result)  # metrics.json, read by python -m torcsrl.sweep
                 return objective(result, cfg.get("optimized_metric"))  # the value a sweeper (Optuna) optimises
         except (CheckpointError, ValueError, RuntimeError) as err:
             if isinstance(err, RuntimeError) and not isinstance(err, CheckpointError) and "cannot be imported" not in str(err):

@@ -131,3 +131,65 @@ def stop_pool(ex, timeout_s: float = 10.0) -> None:
         if p.is_alive():
             p.kill()
             p.join(timeout_s)
+
+
+# ---------------------------------------------------------------------------------------------
+# run folders: one run at a time, and no silent mixing with an older run
+# ---------------------------------------------------------------------------------------------
+LOCK_NAME = ".torcsrl.lock"
+#: What a run folder may hold before a new run starts in it: Hydra's own records of this very run.
+_FRESH_OK = {LOCK_NAME, ".hydra", "train.log"}
+_HELD: dict[str, list] = {}  # resolved run_dir -> [fd, depth]: the locks this process holds
+
+
+class RunDirError(ValueError):
+    """A run folder that is in use by another run, or holds an older run (one-line message)."""
+
+
+@contextlib.contextmanager
+def claim_run_dir(run_dir: str | Path, *, resume: bool = False, overwrite: bool = False):
+    """Hold ``run_dir`` for one run: an exclusive ``flock`` on ``<run_dir>/.torcsrl.lock`` (released by the
+    kernel when the process ends, SIGKILL included), and a refusal to start a fresh run in a folder that holds
+    another run's files unless ``resume`` (continue it) or ``overwrite`` (delete them first). Re-entrant within
+    one process (``python -m torcsrl.train`` claims the folder before writing config.yaml, then ``train`` again)."""
+    import fcntl
+    import shutil
+
+    run_dir = writable_folder(run_dir, "run_dir")
+    key = str(run_dir.resolve())
+    if key in _HELD:
+        _HELD[key][1] += 1
+        try:
+            yield run_dir
+        finally:
+            _HELD[key][1] -= 1
+        return
+    fd = os.open(run_dir / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        holder = os.pread(fd, 200, 0).decode(errors="replace").strip() or "unknown"
+        os.close(fd)
+        raise RunDirError(f"run_dir {run_dir} is in use by another run (pid {holder}); allowed: another run_dir, or wait "
+                          "until that run ends") from None
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, str(os.getpid()).encode(), 0)
+        old = sorted(p.name for p in run_dir.iterdir() if p.name not in _FRESH_OK)
+        if old and overwrite:
+            for name in old:
+                p = run_dir / name
+                shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink()
+        elif old and not resume:
+            shown = ", ".join(old[:5]) + (", ..." if len(old) > 5 else "")
+            raise RunDirError(f"run_dir {run_dir} already holds a run ({shown}); allowed: checkpoint.resume=latest to continue "
+                              "it, overwrite=true to replace it, or an empty or new run_dir")
+        _HELD[key] = [fd, 1]
+    except BaseException:
+        os.close(fd)
+        raise
+    try:
+        yield run_dir
+    finally:
+        _HELD.pop(key, None)
+        os.close(fd)  # releases the flock
