@@ -52,6 +52,7 @@ from torcsrl.utils.checkpoint import (
     checkpoint_path,
     latest_checkpoint,
     load_checkpoint,
+    previous_good,
     prune,
     save_checkpoint,
     save_dir_atomically,
@@ -630,10 +631,25 @@ def _save(cfg, ckpt_dir, meta, counters, loss, optim, policy, collector, env, ev
 
 
 def _resume(cfg, ckpt_dir, meta, loss, optim, policy, collector, env, eval_envs, buffer, run_dir) -> Counters:
-    path = latest_checkpoint(ckpt_dir) if cfg.checkpoint.resume == "latest" else Path(cfg.checkpoint.resume)
+    latest = cfg.checkpoint.resume == "latest"
+    path = latest_checkpoint(ckpt_dir) if latest else Path(cfg.checkpoint.resume)
     if path is None:
         raise CheckpointError(f"checkpoint.resume=latest but {ckpt_dir} holds no checkpoint")
-    ck = load_checkpoint(path, expect=meta)
+    try:
+        ck = load_checkpoint(path, expect=meta)
+        if ck["buffer_dir"]:
+            try:
+                ReplayBuffer.verify(path.parent / ck["buffer_dir"])
+            except ValueError as err:
+                raise CheckpointError(f"checkpoint {path}: its replay buffer cannot be restored ({err})") from None
+    except CheckpointError as err:
+        if not latest or "corrupt" not in str(err) and "cannot be restored" not in str(err):
+            raise
+        good = previous_good(ckpt_dir, path, check=_buffer_intact)
+        hint = (f"; the previous good one is {good}: resume with checkpoint.resume={good}" if good
+                else "; no older intact checkpoint is left in " + str(ckpt_dir))
+        raise CheckpointError(f"{err}{hint}") from None
+    _check_same_env(cfg, ck, path)
     loss.load_state_dict(ck["loss"])
     for k, o in optim.items():
         o.load_state_dict(ck["optim"][k])
@@ -656,7 +672,7 @@ def _resume(cfg, ckpt_dir, meta, loss, optim, policy, collector, env, eval_envs,
         _set_sim_state(e, saved[name])
     if ck["buffer_dir"]:
         try:
-            buffer.loads(str(path.parent / ck["buffer_dir"]))
+            buffer.loads(str(path.parent / ck["buffer_dir"]), verified=True)  # checked above
         except ValueError as err:  # e.g. a TorchRL-format buffer from before torcsrl.utils.replay
             raise CheckpointError(f"checkpoint {path}: its replay buffer cannot be restored ({err})") from None
     if ck["threads"] != torch.get_num_threads():
@@ -667,6 +683,49 @@ def _resume(cfg, ckpt_dir, meta, loss, optim, policy, collector, env, eval_envs,
     set_rng_state(ck["rng"])
     print(f"[torcsrl] resumed from {path} at {counters.frames} steps", file=sys.stderr)
     return counters
+
+
+#: Config sections whose every value shapes the simulation a checkpoint restores (the env's and the degradations' state).
+RESUME_MUST_MATCH = ("env", "degradation")
+
+
+def _check_same_env(cfg: DictConfig, ck: dict, path: Path) -> None:
+    """CheckpointError naming the differences when this run's env (or degradation) settings are not the checkpoint's:
+    resuming restores the saved simulation into this run's env, which must be the same env."""
+    saved_yaml = ck.get("config")
+    if not saved_yaml:
+        return
+    saved = OmegaConf.create(saved_yaml)
+    diffs: list[str] = []
+
+    def flat(x: Any, pre: str) -> dict[str, Any]:
+        if isinstance(x, dict):
+            out: dict[str, Any] = {}
+            for k, v in x.items():
+                out.update(flat(v, f"{pre}.{k}"))
+            return out or {pre: {}}
+        return {pre: x}
+
+    for section in RESUME_MUST_MATCH:
+        try:
+            old = flat(OmegaConf.to_container(saved[section], resolve=True) if section in saved else {}, section)
+        except Exception:  # noqa: BLE001 - an interpolation of the old config that no longer resolves
+            continue
+        new = flat(OmegaConf.to_container(cfg[section], resolve=True) if section in cfg else {}, section)
+        for k in sorted(set(old) | set(new)):
+            if old.get(k) != new.get(k):
+                diffs.append(f"{k}={old.get(k)!r} in the checkpoint, {new.get(k)!r} here")
+    if diffs:
+        more = f" (and {len(diffs) - 3} more)" if len(diffs) > 3 else ""
+        raise CheckpointError(f"checkpoint {path} was written for another env: {'; '.join(diffs[:3])}{more}; resuming restores its "
+                              "simulation into this run's env; allowed: the checkpoint's env settings, or a fresh run_dir")
+
+
+def _buffer_intact(path: Path) -> None:
+    """ValueError unless the replay buffer dump of the checkpoint ``path`` (if it has one) passes its checksums."""
+    ck = load_checkpoint(path)
+    if ck.get("buffer_dir"):
+        ReplayBuffer.verify(path.parent / ck["buffer_dir"])
 
 
 def main_entry() -> None:
