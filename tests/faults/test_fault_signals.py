@@ -94,12 +94,14 @@ def test_evaluate_workers_stop_on_sigterm(tmp_path):
     _signal_and_check(proc, signal.SIGTERM, min_children=3)
 
 
-def test_training_with_collector_workers_stops_on_sigterm(tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL])
+def test_training_with_collector_workers_stops_with_the_run(tmp_path, sig):
     run = tmp_path / "run"
     proc = _start("torcsrl.train", "env=toy", "debug=smoke", "collector.num_workers=2", "checkpoint.every_frames=200",
                   "total_frames=100000", f"run_dir={run}", f"hydra.run.dir={tmp_path / 'hydra'}")
     _wait_for(proc, lambda: latest_checkpoint(run / "checkpoints") is not None)
-    err = _signal_and_check(proc, signal.SIGTERM, min_children=2)
+    err = _signal_and_check(proc, sig, min_children=2)
     last = latest_checkpoint(run / "checkpoints")
-    assert str(last) in err and "checkpoint.resume=latest" in err
+    if sig == signal.SIGTERM:
+        assert str(last) in err and "checkpoint.resume=latest" in err
     assert load_checkpoint(last)["counters"]["frames"] >= 200
