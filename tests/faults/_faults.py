@@ -41,6 +41,22 @@ def one_line_error(proc: subprocess.CompletedProcess, prog: str) -> str:
     return lines[0]
 
 
+def run_main(main, argv: list[str], capsys) -> tuple[int, str]:
+    """An entry point's ``main(argv)`` in this process (no interpreter start-up): (exit status, stderr)."""
+    capsys.readouterr()
+    rc = main(argv)
+    return rc, capsys.readouterr().err
+
+
+def one_line(rc: int, err: str, prog: str) -> str:
+    """:func:`one_line_error` for an in-process :func:`run_main`."""
+    assert "Traceback" not in err, err[-3000:]
+    assert rc == 2, (rc, err[-3000:])
+    lines = [ln for ln in err.splitlines() if f"{prog}: error:" in ln]
+    assert len(lines) == 1, err[-3000:]
+    return lines[0]
+
+
 def descendants(pid: int) -> list[int]:
     """Every live process whose ancestry includes ``pid`` (read from /proc)."""
     parents: dict[int, int] = {}

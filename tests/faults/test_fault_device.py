@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from _faults import cfg_for, one_line_error, run_cli
+from _faults import cfg_for
 
 from torcsrl.config import ConfigError, validate
 
@@ -17,11 +17,18 @@ def test_unknown_device_is_refused():
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
-def test_cuda_on_a_cpu_only_torch_is_refused_on_the_command_line(tmp_path):
-    proc = run_cli("torcsrl.train", "device=cuda", "env=toy", "debug=smoke", f"run_dir={tmp_path / 'run'}")
-    line = one_line_error(proc, "torcsrl.train")
-    assert "device: 'cuda'" in line and "not available" in line and "allowed: cpu" in line
-    assert not (tmp_path / "run" / "checkpoints").exists()
+def test_cuda_on_a_cpu_only_torch_is_refused_before_training(tmp_path):
+    from torcsrl.train import train
+
+    with pytest.raises(ConfigError, match=r"device: 'cuda' is not available on this machine.*allowed: cpu") as e:
+        train(cfg_for("device=cuda", f"run_dir={tmp_path / 'run'}"))
+    assert "\n" not in str(e.value) and not (tmp_path / "run").exists()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA here")
+def test_cuda_where_it_exists_is_refused_too(tmp_path):
+    with pytest.raises(ConfigError, match=r"training runs on the CPU only.*allowed: cpu"):
+        validate(cfg_for("device=cuda"))
 
 
 def test_cpu_is_accepted():

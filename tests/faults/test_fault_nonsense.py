@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 
 import pytest
-from _faults import cfg_for, one_line_error, run_cli
+from _faults import cfg_for, one_line, one_line_error, run_cli, run_main
 
 from torcsrl.config import ConfigError, problems, validate
 from torcsrl.envs.rewards import Reward
@@ -53,8 +53,9 @@ def test_algo_base_on_the_command_line_is_one_line(tmp_path):
     assert "algo.name: must be given" in line and "algo.algo" not in line
 
 
-def test_report_n_boot_zero_is_refused(tmp_path):
-    proc = run_cli("torcsrl.report", "--n-boot", "0", "--out", str(tmp_path / "r"), "--policy", "expert", timeout=60)
-    line = one_line_error(proc, "torcsrl.report")
+def test_report_n_boot_zero_is_refused(tmp_path, capsys):
+    from torcsrl.report import main
+
+    line = one_line(*run_main(main, ["--n-boot", "0", "--out", str(tmp_path / "r"), "--policy", "expert"], capsys), "torcsrl.report")
     assert "--n-boot" in line and ">= 1" in line
     assert not (tmp_path / "r").exists()

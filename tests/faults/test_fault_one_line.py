@@ -2,15 +2,13 @@
 
 from __future__ import annotations
 
-import os
 import resource
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
-import torch
-from _faults import ENV, ROOT, cfg_for, one_line_error, run_cli
+from _faults import ENV, ROOT, cfg_for, one_line, one_line_error, run_cli, run_main
 
 from torcsrl.envs import tracks
 from torcsrl.train import make_buffer
@@ -21,38 +19,50 @@ from torcsrl.train import make_buffer
     (["--degradation", "rangefinder.noise@abc"], ["rangefinder.noise@abc", "allowed"]),
     (["--max-steps", "-5"], ["--max-steps", ">= 1"]),
 ])
-def test_evaluate_bad_flags(tmp_path, args, words):
-    proc = run_cli("torcsrl.evaluate", "--policy", "heuristic", "--track", "oval", "--laps", "1", "--expert-laps", "0",
-                   "--no-plots", "--out", str(tmp_path / "e"), *args, timeout=120)
-    line = one_line_error(proc, "torcsrl.evaluate")
+def test_evaluate_bad_flags(tmp_path, args, words, capsys):
+    from torcsrl.evaluate import main
+
+    line = one_line(*run_main(main, ["--policy", "heuristic", "--track", "oval", "--laps", "1", "--expert-laps", "0",
+                                     "--no-plots", "--out", str(tmp_path / "e"), *args], capsys), "torcsrl.evaluate")
     assert all(w in line for w in words), line
 
 
 # ---------------------------------------------------------------- output folders that cannot be written
-def test_evaluate_out_that_cannot_be_written(tmp_path):
+def test_evaluate_out_that_cannot_be_written(tmp_path, capsys):
+    from torcsrl.evaluate import main
+
     (tmp_path / "file").write_text("not a folder")
-    proc = run_cli("torcsrl.evaluate", "--policy", "heuristic", "--track", "oval", "--laps", "1", "--expert-laps", "0",
-                   "--no-plots", "--out", str(tmp_path / "file" / "out"), timeout=120)
-    line = one_line_error(proc, "torcsrl.evaluate")
+    line = one_line(*run_main(main, ["--policy", "heuristic", "--track", "oval", "--laps", "1", "--expert-laps", "0",
+                                     "--no-plots", "--out", str(tmp_path / "file" / "out")], capsys), "torcsrl.evaluate")
     assert str(tmp_path / "file") in line and "cannot write" in line
 
 
-def test_report_out_that_cannot_be_written(tmp_path):
+def test_report_out_that_cannot_be_written(tmp_path, capsys):
+    from torcsrl.report import main
+
     (tmp_path / "file").write_text("not a folder")
-    proc = run_cli("torcsrl.report", "--policy", "heuristic", "--tracks", "oval", "--degradations", "rangefinder.noise",
-                   "--severities", "0", "1", "--workers", "1", "--out", str(tmp_path / "file" / "out"), timeout=120)
-    line = one_line_error(proc, "torcsrl.report")
+    line = one_line(*run_main(main, ["--policy", "heuristic", "--tracks", "oval", "--degradations", "rangefinder.noise",
+                                     "--severities", "0", "1", "--workers", "1", "--out", str(tmp_path / "file" / "out")], capsys),
+                    "torcsrl.report")
     assert str(tmp_path / "file") in line and "cannot write" in line
 
 
-@pytest.mark.parametrize("key", ["run_dir", "buffer.path"])
-def test_train_folder_that_cannot_be_written(tmp_path, key):
+def test_train_run_dir_that_cannot_be_written(tmp_path):
     (tmp_path / "file").write_text("not a folder")
-    extra = [f"run_dir={tmp_path / 'run'}", "buffer.storage=disk"] if key == "buffer.path" else []
-    proc = run_cli("torcsrl.train", "env=toy", "debug=smoke", f"hydra.run.dir={tmp_path / 'hydra'}", *extra,
-                   f"{key}={tmp_path / 'file' / 'sub'}", timeout=120)
+    proc = run_cli("torcsrl.train", "env=toy", "debug=smoke", f"hydra.run.dir={tmp_path / 'hydra'}",
+                   f"run_dir={tmp_path / 'file' / 'sub'}", timeout=120)
     line = one_line_error(proc, "torcsrl.train")
     assert str(tmp_path / "file") in line and "cannot write" in line
+
+
+def test_train_buffer_path_that_cannot_be_written(tmp_path):
+    from torcsrl.train import train
+    from torcsrl.utils.faults import OutputError
+
+    (tmp_path / "file").write_text("not a folder")
+    with pytest.raises(OutputError, match=r"buffer.path: cannot write") as e:
+        train(cfg_for(f"run_dir={tmp_path / 'run'}", "buffer.storage=disk", f"buffer.path={tmp_path / 'file' / 'sub'}"))
+    assert str(tmp_path / "file") in str(e.value) and "\n" not in str(e.value)
 
 
 def _small_disk():
