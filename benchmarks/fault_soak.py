@@ -5,16 +5,17 @@ uninterrupted runs end; count leftover processes and record memory.
 
 Training (toy env, in-process collector, 1500 frames, checkpoints every 200, disk replay buffer): one uninterrupted
 reference run, then per trial a fresh run killed with SIGKILL or SIGTERM (alternating) after a random delay
-(uniform over the reference's wall time), then ``checkpoint.resume=latest`` to the end (or a fresh
+(uniform from half the reference's start-up time to 85 % of its wall time), then ``checkpoint.resume=latest`` to the end (or a fresh
 ``overwrite=true`` run when the kill came before the first checkpoint). The final checkpoint's networks,
 optimisers and counters, and the CSV logs (but the wall-clock ones), must equal the reference's bit for bit.
 
 Report (heuristic driver on the oval, 2 degradations x severities 0 1 3, ``--workers 2``): one uninterrupted
-reference, then per trial a fresh report killed at a random point and re-run into the same ``--out`` (finished
+reference, then per trial a fresh report killed at a random point (before 85 % of the reference's wall time) and re-run into the same ``--out`` (finished
 cells come from the cache); the episode rows and the summary must equal the reference's.
 
 After every kill it waits up to 20 s and counts the killed run's processes (workers, resource tracker) still
-alive: they are leftovers. It prints the peak RSS of each run's process tree [MiB] and the figures.
+alive: they are leftovers. A SIGTERM that lands during interpreter start-up, before the entry point installs its
+handler, ends the process with the default action (exit code -15; nothing was started yet). It prints the peak RSS of each run's process tree [MiB] and the figures.
 Run it from the repository root (the subprocesses run ``python -m torcsrl...`` there, so they import this checkout).
 """
 
@@ -85,16 +86,20 @@ class Run:
         self.seen: set[int] = set()
         self.peak_mib = 0.0
         self.t0 = time.monotonic()
+        self.log_path = log
+        self.t_marker: float | None = None  # seconds until the log first held the marker (see wait)
 
     def watch(self) -> None:
         kids = _tree(self.proc.pid)
         self.seen.update(kids)
         self.peak_mib = max(self.peak_mib, _rss_mib([self.proc.pid, *kids]))
 
-    def wait(self, timeout_s: float = 900.0) -> int:
+    def wait(self, timeout_s: float = 900.0, marker: str | None = None) -> int:
         deadline = time.monotonic() + timeout_s
         while self.proc.poll() is None:
             self.watch()
+            if marker and self.t_marker is None and marker in self.log_path.read_text(errors="replace"):
+                self.t_marker = time.monotonic() - self.t0
             if time.monotonic() > deadline:
                 self.proc.kill()
                 raise RuntimeError(f"{self.proc.args} did not finish within {timeout_s} s")
@@ -173,8 +178,9 @@ def _report_rows(out: Path) -> tuple[list, list]:
 # ------------------------------------------------------------------------------------------ trials
 def train_trials(n: int, work: Path, rng: random.Random, figures: dict) -> None:
     ref = Run("torcsrl.train", [*TRAIN, f"run_dir={work / 'train_ref'}", f"hydra.run.dir={work / 'hydra'}"], work / "train_ref.log")
-    assert ref.wait() == 0, (work / "train_ref.log").read_text()[-2000:]
+    assert ref.wait(marker="[torcsrl] training") == 0, (work / "train_ref.log").read_text()[-2000:]
     wall = time.monotonic() - ref.t0
+    start = ref.t_marker or 0.0  # interpreter start-up and building: the kill points are drawn mostly after it
     figures["train_ref_wall_s"] = wall
     figures["peak_rss_mib"].append(ref.peak_mib)
     ref_state, ref_csv = _final_state(work / "train_ref"), _csv_rows(work / "train_ref")
@@ -182,7 +188,7 @@ def train_trials(n: int, work: Path, rng: random.Random, figures: dict) -> None:
         sig = (signal.SIGKILL, signal.SIGTERM)[i % 2]
         d = work / f"train_{i}"
         run = Run("torcsrl.train", [*TRAIN, f"run_dir={d}", f"hydra.run.dir={work / 'hydra'}"], work / f"train_{i}.log")
-        delay = rng.uniform(0.3, wall)
+        delay = rng.uniform(0.5 * start, 0.85 * wall)
         if not run.run_for(delay):
             run.wait()
             figures["train_ended_before_kill"] += 1
@@ -217,7 +223,7 @@ def report_trials(n: int, work: Path, rng: random.Random, figures: dict) -> None
         sig = (signal.SIGTERM, signal.SIGKILL)[i % 2]
         out = work / f"report_{i}"
         run = Run("torcsrl.report", [*REPORT, "--out", str(out)], work / f"report_{i}.log")
-        delay = rng.uniform(0.3, wall)
+        delay = rng.uniform(0.3, 0.85 * wall)
         if not run.run_for(delay):
             run.wait()
             figures["report_ended_before_kill"] += 1
