@@ -187,17 +187,20 @@ def train_trials(n: int, work: Path, rng: random.Random, figures: dict) -> None:
     for i in range(n):
         sig = (signal.SIGKILL, signal.SIGTERM)[i % 2]
         d = work / f"train_{i}"
-        run = Run("torcsrl.train", [*TRAIN, f"run_dir={d}", f"hydra.run.dir={work / 'hydra'}"], work / f"train_{i}.log")
         delay = rng.uniform(0.5 * start, 0.85 * wall)
-        if not run.run_for(delay):
+        for _ in range(3):  # a run that ends before its kill point is started again, killed earlier
+            shutil.rmtree(d, ignore_errors=True)
+            run = Run("torcsrl.train", [*TRAIN, f"run_dir={d}", f"hydra.run.dir={work / 'hydra'}"], work / f"train_{i}.log")
+            if run.run_for(delay):
+                rc, left = run.kill(sig)
+                figures["kills"][signal.Signals(sig).name] += 1
+                figures["leftover_processes"] += left
+                figures["train_rc"].setdefault(signal.Signals(sig).name, set()).add(rc)
+                figures["peak_rss_mib"].append(run.peak_mib)
+                break
             run.wait()
             figures["train_ended_before_kill"] += 1
-        else:
-            rc, left = run.kill(sig)
-            figures["kills"][signal.Signals(sig).name] += 1
-            figures["leftover_processes"] += left
-            figures["train_rc"].setdefault(signal.Signals(sig).name, set()).add(rc)
-        figures["peak_rss_mib"].append(run.peak_mib)
+            delay *= 0.6
         has_ckpt = any((d / "checkpoints").glob("ckpt_*.pt")) if (d / "checkpoints").is_dir() else False
         resume = ["checkpoint.resume=latest"] if has_ckpt else ["overwrite=true"]
         again = Run("torcsrl.train", [*TRAIN, f"run_dir={d}", f"hydra.run.dir={work / 'hydra'}", *resume], work / f"train_{i}_resume.log")
@@ -222,17 +225,20 @@ def report_trials(n: int, work: Path, rng: random.Random, figures: dict) -> None
     for i in range(n):
         sig = (signal.SIGTERM, signal.SIGKILL)[i % 2]
         out = work / f"report_{i}"
-        run = Run("torcsrl.report", [*REPORT, "--out", str(out)], work / f"report_{i}.log")
         delay = rng.uniform(0.3, 0.85 * wall)
-        if not run.run_for(delay):
+        for _ in range(3):  # a run that ends before its kill point is started again, killed earlier
+            shutil.rmtree(out, ignore_errors=True)
+            run = Run("torcsrl.report", [*REPORT, "--out", str(out)], work / f"report_{i}.log")
+            if run.run_for(delay):
+                rc, left = run.kill(sig)
+                figures["kills"][signal.Signals(sig).name] += 1
+                figures["leftover_processes"] += left
+                figures["report_rc"].setdefault(signal.Signals(sig).name, set()).add(rc)
+                figures["peak_rss_mib"].append(run.peak_mib)
+                break
             run.wait()
             figures["report_ended_before_kill"] += 1
-        else:
-            rc, left = run.kill(sig)
-            figures["kills"][signal.Signals(sig).name] += 1
-            figures["leftover_processes"] += left
-            figures["report_rc"].setdefault(signal.Signals(sig).name, set()).add(rc)
-        figures["peak_rss_mib"].append(run.peak_mib)
+            delay *= 0.6
         cached = len(list((out / "cells").glob("*.json"))) if (out / "cells").is_dir() else 0
         again = Run("torcsrl.report", [*REPORT, "--out", str(out)], work / f"report_{i}_rerun.log")
         rc = again.wait()
@@ -266,7 +272,7 @@ def main(argv=None) -> int:
     f = figures
     kills = f["kills"]["SIGKILL"] + f["kills"]["SIGTERM"]
     print(f"kills: {kills} ({f['kills']['SIGKILL']} SIGKILL, {f['kills']['SIGTERM']} SIGTERM; "
-          f"{f['train_ended_before_kill'] + f['report_ended_before_kill']} runs ended before their kill)")
+          f"{f['train_ended_before_kill'] + f['report_ended_before_kill']} runs ended before their kill point and were run again)")
     print(f"exit codes: train {dict((k, sorted(v)) for k, v in f['train_rc'].items())}, "
           f"report {dict((k, sorted(v)) for k, v in f['report_rc'].items())}")
     print(f"training: {f['train_equal']}/{f['train_trials']} resumed runs equal the uninterrupted one "
