@@ -6,7 +6,11 @@
 - :func:`graceful_termination`: SIGTERM (what ``kill``, ``timeout`` and job schedulers send) ends a run
   like Ctrl-C does, so its ``finally`` blocks stop the worker processes; the entry points then print one
   line and exit with 128 + the signal number.
-- :func:`file_digest`: SHA-256 of a file, for checkpoint and replay-buffer checksums.
+  :func:`stop_pool` terminates a process pool's workers; :func:`ignore_signals_in_worker` (pool initialisers)
+  leaves Ctrl-C to the parent and ends a worker when its parent dies, SIGKILL included (Linux).
+- :func:`claim_run_dir`: one run per run folder (a lock), and no fresh run into a folder holding another run
+  unless it resumes it or ``overwrite`` is asked for.
+- :func:`file_digest`: SHA-256 of a file, for replay-buffer checksums.
 """
 
 from __future__ import annotations
