@@ -35,4 +35,5 @@ def test_env_create_close_cycles_keep_rss_flat():
     out = subprocess.run([sys.executable, "-c", CODE], cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     per_env_mib = float(out.stdout.split()[-1])
-    assert per_env_mib < 0.1, f"RSS grows {per_env_mib:.2f} MiB per env created and closed"
+    # the leak was 2-4.5 MiB per env; allocator noise stays well below 0.5
+    assert per_env_mib < 0.5, f"RSS grows {per_env_mib:.2f} MiB per env created and closed"
