@@ -58,7 +58,9 @@ def test_a_checkpoint_whose_record_disagrees_is_refused(run, tmp_path):
     data = torch.load(ck, weights_only=False)
     data["meta"]["pipeline"]["scales"]["rangefinder"] = [100.0] * 19
     bad = tmp_path / "bad.pt"
-    torch.save(data, bad)
+    from torcsrl.utils.checkpoint import save_checkpoint
+
+    save_checkpoint(bad, data)  # written WITH this record (a plain torch.save of edited bytes fails its checksum first)
     with pytest.raises(PolicyError, match="observation scaling") as err:
         CheckpointPolicy(bad)
     assert "\n" not in str(err.value)

@@ -94,9 +94,11 @@ def test_changed_policy_file_invalidates_its_cells(tmp_path):
     cfg = tiny(policies=[str(ck)], max_steps=20, random_max_steps=10)
     assert run_report(cfg, tmp_path / "r", verbose=False)["computed"] == 3
     assert run_report(cfg, tmp_path / "r", verbose=False)["computed"] == 0
+    from torcsrl.utils.checkpoint import save_checkpoint
+
     payload = torch.load(ck, weights_only=True)
     payload["actor"]["net.0.bias"] += 0.1
-    torch.save(payload, ck)
+    save_checkpoint(ck, payload)  # a retrained policy file (edited bytes without a new checksum are refused as corrupt)
     res = run_report(cfg, tmp_path / "r", verbose=False)
     assert (res["computed"], res["cached"]) == (2, 1)  # the random baseline stays cached
 

@@ -184,7 +184,7 @@ def test_per_track_validation_logs_every_track_and_resumes_exactly(tmp_path):
 
 def test_per_track_validation_needs_tracks(tmp_path):
     with pytest.raises(ValueError, match="eval.per_track=true validates on each track of env.track; env.name='toy' has no tracks"):
-        train(cfg_for(f"run_dir={tmp_path}", "total_frames=100", "eval.per_track=true"))
+        train(cfg_for(f"run_dir={tmp_path}", "total_frames=200", "eval.per_track=true"))
 
 
 def test_resume_is_exact_with_stateful_degradations(tmp_path):

@@ -114,8 +114,9 @@ def problems(cfg: DictConfig | Mapping) -> list[str]:
                     missing = OmegaConf.missing_keys(node)
                 except Exception:  # noqa: BLE001 -- an interpolation of a missing value: reported where it is missing
                     missing = set()
-                for key in sorted(missing):
-                    out.append(f"{top}.{key}: must be given (it is ??? in the config); e.g. {top}.{key}=<value>")
+                for key in sorted(missing):  # OmegaConf names them from the top already ("algo.name")
+                    full = key if str(key).startswith(f"{top}.") else f"{top}.{key}"
+                    out.append(f"{full}: must be given (it is ??? in the config); e.g. {full}=<value>")
         if out:
             return out  # values that interpolate them cannot be resolved yet
         try:
@@ -137,6 +138,9 @@ def problems(cfg: DictConfig | Mapping) -> list[str]:
             out.append(f"{k}: expected a string, got {v!r}")
     if "algo" in c:
         _check_algo(c["algo"], out)
+    _check_budget(c, out)
+    if "device" in c:
+        _check_device(c["device"], out)
     demos = c.get("demos")
     if isinstance(demos, Mapping) and "teacher" in demos:
         from torcsrl.demos import TEACHERS
@@ -353,6 +357,42 @@ def _check_algo(algo: Any, out: list[str]) -> None:
         out.append(f"algo.precision: unknown precision {algo['precision']!r}; allowed: {', '.join(PRECISIONS)}")
 
 
+def _check_device(device: Any, out: list[str]) -> None:
+    """``device`` must name a torch device this machine has; the loop (envs, collector, replay buffer and
+    updates) runs on the CPU, so ``cpu`` is the only device it accepts today."""
+    import torch
+
+    try:
+        dev = torch.device(str(device))
+    except (RuntimeError, ValueError):
+        out.append(f"device: {device!r} is not a torch device; allowed: cpu")
+        return
+    if dev.type == "cpu":
+        return
+    backend = getattr(torch, dev.type, None)
+    available = bool(getattr(backend, "is_available", lambda: False)())
+    if not available:
+        out.append(f"device: {str(device)!r} is not available on this machine (torch {torch.__version__}: "
+                   f"torch.{dev.type}.is_available() is False); allowed: cpu")
+    else:
+        out.append(f"device: {str(device)!r}: training runs on the CPU only (envs, collector, replay buffer and updates "
+                   "are CPU-side; a GPU is used only for EGL rendering); allowed: cpu")
+
+
+def _check_budget(c: Mapping, out: list[str]) -> None:
+    """A run whose warm-up covers its whole budget makes no gradient step: refuse it (RL algorithms only)."""
+    from torcsrl.agents import IMITATION
+
+    algo = c.get("algo") if isinstance(c.get("algo"), Mapping) else {}
+    warmup = (c.get("learner") or {}).get("warmup_frames") if isinstance(c.get("learner"), Mapping) else None
+    total = c.get("total_frames")
+    if algo.get("name") in IMITATION or not (_is_num(warmup) and _is_num(total)):
+        return
+    if warmup >= total:
+        out.append(f"learner.warmup_frames: {warmup} >= total_frames {total}: the run would make no gradient step; "
+                   f"allowed: warmup_frames < total_frames (e.g. learner.warmup_frames={max(0, int(total) // 10)})")
+
+
 def _check_env(env: Mapping, path: str, out: list[str], only: set | None = None, bare: bool = False) -> None:
     """``env`` (make_env keyword arguments + name, normalize); ``only``: report only these keys (eval.env)."""
     name = env.get("name")
@@ -440,6 +480,16 @@ def _check_race_env(env: Mapping, key, mine, out: list[str]) -> None:
             Reward(env["reward"], 1.0)
         except (ValueError, TypeError) as err:
             out.append(f"{key('reward')}: {err}")
+    if mine("reward_scale") and env.get("reward_scale") is not None:
+        try:
+            Reward("summers_final", env["reward_scale"])
+        except (ValueError, TypeError) as err:
+            out.append(f"{key('reward_scale')}: {err}")
+    from torcsrl.envs.race import episode_setting_problems
+
+    given = {k: env[k] for k in ("spawn_jitter", "offtrack_grace_s", "no_progress_s", "backwards_m") if k in env and mine(k)}
+    for k, msg in episode_setting_problems(**given):
+        out.append(f"{key(k)}: {msg}")
     if mine("start") and env.get("start") is not None and env["start"] not in START_MODES:
         out.append(f"{key('start')}: unknown start {env['start']!r}; allowed: {', '.join(START_MODES)}")
     if mine("action_mode") and env.get("action_mode") is not None and env["action_mode"] not in ACTION_MODES:

@@ -45,6 +45,7 @@ import torch
 
 from torcsrl import metrics
 from torcsrl.policies import BUILTIN_POLICIES, EpisodeContext, Policy, PolicyError, load_policy
+from torcsrl.utils.faults import OutputError, ignore_signals_in_worker, stop_pool, writable_folder
 
 __all__ = [
     "Degradation",
@@ -115,6 +116,17 @@ class Degradation:
         return make_degradation(self.name, severity=self.severity, optional=True, **dict(self.params))
 
 
+def _severity(v: Any, spec: Any) -> int:
+    """An integer severity from ``v`` (of the degradation ``spec``), or EvalError."""
+    try:
+        if isinstance(v, bool) or (isinstance(v, float) and not v.is_integer()):
+            raise ValueError
+        return int(v)
+    except (TypeError, ValueError):
+        raise EvalError(f"degradation {spec!r}: severity {v!r} is not an integer; allowed: name or name@severity with "
+                        "severity in 0..5 (0 = clean)") from None
+
+
 def parse_degradation(d: Any, severity: int | None = None) -> Degradation:
     """A :class:`Degradation` from None, ``"name"``, ``"name@s"``, ``(name, s)``, a mapping
     ``{name, severity, **params}`` or a Degradation; checks the name and severity (EvalError)."""
@@ -124,14 +136,16 @@ def parse_degradation(d: Any, severity: int | None = None) -> Degradation:
         deg = d
     elif isinstance(d, str):
         name, _, s = d.partition("@")
-        deg = Degradation(name, int(s) if s else int(severity if severity is not None else 3))
+        deg = Degradation(name, _severity(s if s else (severity if severity is not None else 3), d))
     elif isinstance(d, Mapping):
         m = dict(d)
+        if "name" not in m:
+            raise EvalError(f"a degradation mapping needs a name, got {d!r}; allowed: {{name, severity, **params}}")
         name = m.pop("name")
-        s = int(m.pop("severity", severity if severity is not None else 3))
+        s = _severity(m.pop("severity", severity if severity is not None else 3), d)
         deg = Degradation(name, s, tuple(sorted(m.items())))
     elif isinstance(d, (tuple, list)) and len(d) == 2:
-        deg = Degradation(str(d[0]), int(d[1]))
+        deg = Degradation(str(d[0]), _severity(d[1], d))
     else:
         raise EvalError(f"cannot read a degradation from {d!r}; use 'name', 'name@severity' or {{name, severity}}")
     if deg.name in (metrics.CLEAN, "clean"):
@@ -619,13 +633,19 @@ def evaluate(
     t0 = time.perf_counter()
     if int(laps) < 1 or int(episodes) < 1:
         raise EvalError(f"laps and episodes must be >= 1, got laps={laps}, episodes={episodes}")
+    if max_steps is not None and (isinstance(max_steps, bool) or int(max_steps) != max_steps or max_steps < 1):
+        raise EvalError(f"--max-steps (max_steps) must be an integer >= 1, got {max_steps!r}; allowed: 1, 2, ... or "
+                        "none (N laps at 10 m/s)")
     names, surfs = validate_grid(tracks, surfaces)
     deg = parse_degradation(degradation)
     pol = load_policy(policy)
     check_policy_env(pol, names[0], env_kwargs)
     out = Path(out_dir) if out_dir is not None else None
     if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
+        try:
+            writable_folder(out, "--out")
+        except OutputError as err:
+            raise EvalError(str(err)) from None
     config = {"policy": pol.describe(), "tracks": names, "surfaces": surfs, "laps": int(laps), "episodes": int(episodes),
               "seed": int(seed), "degradation": {"name": deg.name, "severity": deg.severity, "params": dict(deg.params)},
               "max_steps": max_steps, "env_kwargs": dict(env_kwargs or {}), "protocol": PROTOCOL_VERSION}
@@ -705,6 +725,7 @@ _POLICIES: dict[str, Policy] = {}
 
 def _worker_init() -> None:
     torch.set_num_threads(1)
+    ignore_signals_in_worker()
 
 
 def map_tasks(fn: Callable[..., Any], tasks: Sequence[tuple], workers: int = 1):
@@ -723,8 +744,8 @@ def map_tasks(fn: Callable[..., Any], tasks: Sequence[tuple], workers: int = 1):
         try:
             for f in futs:
                 yield f.result()
-        except BaseException:
-            ex.shutdown(wait=False, cancel_futures=True)
+        except BaseException:  # a signal (Interrupted), a failed task, or the consumer stopped early (GeneratorExit)
+            stop_pool(ex)
             raise
 
 
@@ -744,6 +765,8 @@ def read_evaluations(root: str | Path) -> list[dict[str, Any]]:
 
 # --------------------------------------------------------------------------------------------
 def main(argv: Sequence[str] | None = None) -> int:
+    from torcsrl.utils.faults import exit_code, graceful_termination, os_error_line
+
     parser = argparse.ArgumentParser(prog="python -m torcsrl.evaluate", description=__doc__.split("\n\n")[0])
     parser.add_argument("--policy", default="expert", help="checkpoint path, 'reference', 'expert', 'sensor', 'heuristic' or 'random'")
     parser.add_argument("--track", "--tracks", dest="track", nargs="+", default=["set:heldout"], help="track names and/or sets (set:heldout)")
@@ -762,14 +785,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     try:
-        deg = parse_degradation(args.degradation, args.severity) if args.degradation else None
-        out = args.out or str(Path("outputs") / "evaluate" / Path(str(args.policy)).stem / time.strftime("%Y-%m-%d_%H-%M-%S"))
-        res = evaluate(args.policy, args.track, args.surface, laps=args.laps, seed=args.seed, out_dir=out, degradation=deg,
-                       episodes=args.episodes, max_steps=args.max_steps, env_kwargs={"start": args.start},
-                       expert_laps=args.expert_laps, plots=not args.no_plots, workers=args.workers)
+        with graceful_termination():
+            deg = parse_degradation(args.degradation, args.severity) if args.degradation else None
+            out = args.out or str(Path("outputs") / "evaluate" / Path(str(args.policy)).stem / time.strftime("%Y-%m-%d_%H-%M-%S"))
+            res = evaluate(args.policy, args.track, args.surface, laps=args.laps, seed=args.seed, out_dir=out, degradation=deg,
+                           episodes=args.episodes, max_steps=args.max_steps, env_kwargs={"start": args.start},
+                           expert_laps=args.expert_laps, plots=not args.no_plots, workers=args.workers)
     except (EvalError, PolicyError) as err:
         print(f"torcsrl.evaluate: error: {err}", file=sys.stderr)
         return 2
+    except OSError as err:
+        print(f"torcsrl.evaluate: error: {os_error_line(err)}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt as err:
+        print(f"torcsrl.evaluate: error: stopped by {getattr(err, 'name', 'SIGINT')}; its worker processes were stopped "
+              "(run it again for the full evaluation)", file=sys.stderr)
+        return exit_code(err)
     print((Path(out) / "evaluation.md").read_text())
     return 0
 

@@ -60,6 +60,8 @@ from torcsrl import metrics
 from torcsrl.evaluate import (PROTOCOL_VERSION, Degradation, EvalError, _f, check_policy_env, markdown_table,
                               parse_degradation, read_evaluations, run_cell, validate_grid, write_csv, write_json)
 from torcsrl.policies import BUILTIN_POLICIES, REFERENCE_POLICY, Policy, PolicyError, load_policy
+from torcsrl.utils.faults import (OutputError, exit_code, graceful_termination, ignore_signals_in_worker, os_error_line, stop_pool,
+                                  writable_folder)
 
 __all__ = [
     "DEFAULT_DEGRADATIONS",
@@ -193,6 +195,7 @@ def _worker_init() -> None:
     import torch
 
     torch.set_num_threads(1)
+    ignore_signals_in_worker()
 
 
 def _run_cell_task(cell: Cell, policy: Any, cfg: dict[str, Any], config_hash: str, path: str) -> dict[str, Any]:
@@ -304,14 +307,30 @@ def prepare(cfg: ReportConfig) -> dict[str, Any]:
             "reference": ref_name, "tracks": tracks, "surfaces": surfaces, "degradations": [d.name for d in degs], "severities": sev}
 
 
+def check_counts(**counts: Any) -> None:
+    """EvalError (one line) for a count below 1: ``n_boot`` (bootstrap resamples), ``episodes``, ``laps``, ``workers``,
+    ``max_steps`` (None: the default), ``random_max_steps``."""
+    for name, v in counts.items():
+        if v is not None and (not isinstance(v, int) or isinstance(v, bool) or v < 1):
+            flag = "--" + name.replace("_", "-")
+            raise EvalError(f"{flag} (report {name}) must be an integer >= 1, got {v!r}; allowed: 1, 2, ... "
+                            + ("(1000 is the default)" if name == "n_boot" else ""))
+
+
 def run_report(cfg: ReportConfig, out_dir: str | Path, cache_dir: str | Path | None = None, verbose: bool = True) -> dict[str, Any]:
     """Run (or resume) the grid of ``cfg`` and write the report to ``out_dir``; returns
     ``{"summary", "files", "computed", "cached", "cells", ...}``."""
     t0 = time.perf_counter()
+    check_counts(n_boot=cfg.n_boot, episodes=cfg.episodes, laps=cfg.laps, workers=cfg.workers, max_steps=cfg.max_steps,
+                 random_max_steps=cfg.random_max_steps)
     plan = prepare(cfg)
     out = Path(out_dir)
     cache = Path(cache_dir) if cache_dir is not None else out / "cells"
-    cache.mkdir(parents=True, exist_ok=True)
+    try:
+        writable_folder(out, "--out")
+        writable_folder(cache, "--cache")
+    except OutputError as err:
+        raise EvalError(str(err)) from None
     ccfg = cfg.cell_config()
     config_hash = _hash(ccfg)[:16]
     records: dict[Cell, dict[str, Any]] = {}
@@ -351,8 +370,8 @@ def run_report(cfg: ReportConfig, out_dir: str | Path, cache_dir: str | Path | N
             futs = {ex.submit(_run_cell_task, cell, pspec, ccfg, config_hash, str(path)): cell for cell, pspec, path in todo}
             for fut in cf.as_completed(futs):
                 _done(futs[fut], fut.result())
-        except BaseException:
-            ex.shutdown(wait=False, cancel_futures=True)
+        except BaseException:  # a signal (Interrupted) or a failed cell: finished cells are in the cache already
+            stop_pool(ex)
             raise
         ex.shutdown()
     # clean runs standing in for degradations a policy does not observe
@@ -589,6 +608,7 @@ def build_report(rows: Sequence[Mapping[str, Any]], out_dir: str | Path, *, poli
                  cells: Sequence[Mapping[str, Any]] | None = None, verbose: bool = True) -> dict[str, Any]:
     """Metrics from episode ``rows`` and every output file in ``out_dir``; returns
     ``{"summary", "files", "summary_line"}``."""
+    check_counts(n_boot=n_boot)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rows = [dict(r) for r in rows]
@@ -767,30 +787,44 @@ def main(argv: Sequence[str] | None = None) -> int:
     torch.set_num_threads(1)
     out = Path(args.out) if args.out else Path("outputs") / "report" / time.strftime("%Y-%m-%d_%H-%M-%S")
     try:
-        if args.from_dir:
-            rows = read_rows(args.from_dir)
-            cors = None if args.degradations == list(DEFAULT_DEGRADATIONS) else args.degradations
-            res = build_report(rows, out, policies=args.policy, reference=args.reference, corruptions=cors,
-                               n_boot=args.n_boot, seed=args.seed, meta={"source": str(args.from_dir)})
-        else:
-            policies = args.policy
-            if policies is None:
-                policies, note = default_policies()
-                if note:
-                    print(f"[torcsrl.report] {note}", file=sys.stderr)
-            degs = expand_degradations(args.degradations)
-            cfg = ReportConfig(policies=list(policies), reference=args.reference, tracks=args.tracks,
-                               surfaces=args.surfaces or [None], degradations=degs, severities=args.severities,
-                               episodes=args.episodes, laps=args.laps, seed=args.seed, max_steps=args.max_steps,
-                               random_max_steps=args.random_max_steps, workers=args.workers, n_boot=args.n_boot)
-            cache = args.cache or (None if args.out else Path("outputs") / "report" / "cells")
-            res = run_report(cfg, out, cache)
+        with graceful_termination():
+            res = _run_main(args, out)
     except (EvalError, PolicyError) as err:
         print(f"torcsrl.report: error: {err}", file=sys.stderr)
         return 2
+    except OSError as err:
+        print(f"torcsrl.report: error: {os_error_line(err)}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt as err:
+        print(f"torcsrl.report: error: stopped by {getattr(err, 'name', 'SIGINT')}; worker processes stopped; finished cells "
+              "are kept in the cache and a re-run skips them", file=sys.stderr)
+        return exit_code(err)
     print(res["summary_line"])
     print(f"report: {out / 'REPORT.md'}  ({out / 'report.html'})")
     return 0
+
+
+def _run_main(args: argparse.Namespace, out: Path) -> dict[str, Any]:
+    """The work of :func:`main` once the flags are parsed."""
+    check_counts(n_boot=args.n_boot, episodes=args.episodes, laps=args.laps, workers=args.workers, max_steps=args.max_steps,
+                 random_max_steps=args.random_max_steps)
+    if args.from_dir:
+        rows = read_rows(args.from_dir)
+        cors = None if args.degradations == list(DEFAULT_DEGRADATIONS) else args.degradations
+        return build_report(rows, out, policies=args.policy, reference=args.reference, corruptions=cors,
+                            n_boot=args.n_boot, seed=args.seed, meta={"source": str(args.from_dir)})
+    policies = args.policy
+    if policies is None:
+        policies, note = default_policies()
+        if note:
+            print(f"[torcsrl.report] {note}", file=sys.stderr)
+    degs = expand_degradations(args.degradations)
+    cfg = ReportConfig(policies=list(policies), reference=args.reference, tracks=args.tracks,
+                       surfaces=args.surfaces or [None], degradations=degs, severities=args.severities,
+                       episodes=args.episodes, laps=args.laps, seed=args.seed, max_steps=args.max_steps,
+                       random_max_steps=args.random_max_steps, workers=args.workers, n_boot=args.n_boot)
+    cache = args.cache or (None if args.out else Path("outputs") / "report" / "cells")
+    return run_report(cfg, out, cache)
 
 
 def expand_degradations(names: Sequence[str]) -> list[str]:

@@ -40,7 +40,7 @@ from types import SimpleNamespace
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 from tensordict import TensorDict, TensorDictBase
 from torchrl.collectors import MultiSyncCollector
 from torchrl.envs import Compose, EnvBase, InitTracker, RewardSum
@@ -52,11 +52,13 @@ from torcsrl.utils.checkpoint import (
     checkpoint_path,
     latest_checkpoint,
     load_checkpoint,
+    previous_good,
     prune,
     save_checkpoint,
     save_dir_atomically,
 )
 from torcsrl.utils.collector import StepCollector
+from torcsrl.utils.faults import claim_run_dir, exit_code, graceful_termination, os_error_line, writable_folder
 from torcsrl.utils.replay import ReplayBuffer
 from torcsrl.utils.logging import Progress, log_metrics, make_loggers, truncate_csv_after
 from torcsrl.utils.seeding import rng_state, seed_everything, set_rng_state
@@ -427,16 +429,29 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     """Train ``cfg.algo`` on ``cfg.env``; returns the final metrics (and where things were written).
 
     The config is checked first (:func:`torcsrl.config.validate`: unknown keys, wrong types, unknown
-    names, severities): a ``ConfigError`` naming every problem, before anything is built."""
+    names, severities): a ``ConfigError`` naming every problem, before anything is built. The run folder
+    is then held for this run alone (:func:`torcsrl.utils.faults.claim_run_dir`: a lock, and a folder
+    holding another run is refused unless ``checkpoint.resume`` or ``overwrite=true``)."""
     from torcsrl.config import validate as check_config
 
     check_config(cfg)
-    if cfg.algo.name in agents.IMITATION:  # BC / DAgger: no critic, no collector (torcsrl/imitation.py)
-        from torcsrl.imitation import train as imitate
-
-        return imitate(cfg)
     run_dir = _run_dir(cfg)
-    run_dir.mkdir(parents=True, exist_ok=True)
+    if not cfg.run_dir:  # pin the folder (a time stamp outside Hydra) for everything that asks for it below
+        cfg = cfg.copy()
+        with open_dict(cfg):
+            cfg.run_dir = str(run_dir)
+    with claim_run_dir(run_dir, resume=bool(cfg.checkpoint.resume), overwrite=bool(cfg.get("overwrite", False))):
+        if cfg.algo.name in agents.IMITATION:  # BC / DAgger: no critic, no collector (torcsrl/imitation.py)
+            from torcsrl.imitation import train as imitate
+
+            return imitate(cfg)
+        return _train(cfg, run_dir)
+
+
+def _train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
+    """:func:`train`'s loop, in the folder it holds."""
+    if cfg.buffer.storage == "disk":
+        writable_folder(cfg.buffer.path or run_dir / "buffer", "buffer.path")
     ckpt_dir = run_dir / "checkpoints"
     threads = configure_threads(cfg.threads, int(cfg.collector.num_workers))
     seed_everything(int(cfg.seed))
@@ -616,10 +631,25 @@ def _save(cfg, ckpt_dir, meta, counters, loss, optim, policy, collector, env, ev
 
 
 def _resume(cfg, ckpt_dir, meta, loss, optim, policy, collector, env, eval_envs, buffer, run_dir) -> Counters:
-    path = latest_checkpoint(ckpt_dir) if cfg.checkpoint.resume == "latest" else Path(cfg.checkpoint.resume)
+    latest = cfg.checkpoint.resume == "latest"
+    path = latest_checkpoint(ckpt_dir) if latest else Path(cfg.checkpoint.resume)
     if path is None:
         raise CheckpointError(f"checkpoint.resume=latest but {ckpt_dir} holds no checkpoint")
-    ck = load_checkpoint(path, expect=meta)
+    try:
+        ck = load_checkpoint(path, expect=meta)
+        if ck["buffer_dir"]:
+            try:
+                ReplayBuffer.verify(path.parent / ck["buffer_dir"])
+            except ValueError as err:
+                raise CheckpointError(f"checkpoint {path}: its replay buffer cannot be restored ({err})") from None
+    except CheckpointError as err:
+        if not latest or "corrupt" not in str(err) and "cannot be restored" not in str(err):
+            raise
+        good = previous_good(ckpt_dir, path, check=_buffer_intact)
+        hint = (f"; the previous good one is {good}: resume with checkpoint.resume={good}" if good
+                else "; no older intact checkpoint is left in " + str(ckpt_dir))
+        raise CheckpointError(f"{err}{hint}") from None
+    _check_same_env(cfg, ck, path)
     loss.load_state_dict(ck["loss"])
     for k, o in optim.items():
         o.load_state_dict(ck["optim"][k])
@@ -642,7 +672,7 @@ def _resume(cfg, ckpt_dir, meta, loss, optim, policy, collector, env, eval_envs,
         _set_sim_state(e, saved[name])
     if ck["buffer_dir"]:
         try:
-            buffer.loads(str(path.parent / ck["buffer_dir"]))
+            buffer.loads(str(path.parent / ck["buffer_dir"]), verified=True)  # checked above
         except ValueError as err:  # e.g. a TorchRL-format buffer from before torcsrl.utils.replay
             raise CheckpointError(f"checkpoint {path}: its replay buffer cannot be restored ({err})") from None
     if ck["threads"] != torch.get_num_threads():
@@ -655,6 +685,49 @@ def _resume(cfg, ckpt_dir, meta, loss, optim, policy, collector, env, eval_envs,
     return counters
 
 
+#: Config sections whose every value shapes the simulation a checkpoint restores (the env's and the degradations' state).
+RESUME_MUST_MATCH = ("env", "degradation")
+
+
+def _check_same_env(cfg: DictConfig, ck: dict, path: Path) -> None:
+    """CheckpointError naming the differences when this run's env (or degradation) settings are not the checkpoint's:
+    resuming restores the saved simulation into this run's env, which must be the same env."""
+    saved_yaml = ck.get("config")
+    if not saved_yaml:
+        return
+    saved = OmegaConf.create(saved_yaml)
+    diffs: list[str] = []
+
+    def flat(x: Any, pre: str) -> dict[str, Any]:
+        if isinstance(x, dict):
+            out: dict[str, Any] = {}
+            for k, v in x.items():
+                out.update(flat(v, f"{pre}.{k}"))
+            return out or {pre: {}}
+        return {pre: x}
+
+    for section in RESUME_MUST_MATCH:
+        try:
+            old = flat(OmegaConf.to_container(saved[section], resolve=True) if section in saved else {}, section)
+        except Exception:  # noqa: BLE001 - an interpolation of the old config that no longer resolves
+            continue
+        new = flat(OmegaConf.to_container(cfg[section], resolve=True) if section in cfg else {}, section)
+        for k in sorted(set(old) | set(new)):
+            if old.get(k) != new.get(k):
+                diffs.append(f"{k}={old.get(k)!r} in the checkpoint, {new.get(k)!r} here")
+    if diffs:
+        more = f" (and {len(diffs) - 3} more)" if len(diffs) > 3 else ""
+        raise CheckpointError(f"checkpoint {path} was written for another env: {'; '.join(diffs[:3])}{more}; resuming restores its "
+                              "simulation into this run's env; allowed: the checkpoint's env settings, or a fresh run_dir")
+
+
+def _buffer_intact(path: Path) -> None:
+    """ValueError unless the replay buffer dump of the checkpoint ``path`` (if it has one) passes its checksums."""
+    ck = load_checkpoint(path)
+    if ck.get("buffer_dir"):
+        ReplayBuffer.verify(path.parent / ck["buffer_dir"])
+
+
 def main_entry() -> None:
     import hydra
 
@@ -662,18 +735,30 @@ def main_entry() -> None:
     def main(cfg: DictConfig) -> float | None:
         from torcsrl.config import objective, save_run_info, validate, write_metrics
 
+        run_dir = None
         try:
-            validate(cfg)  # unknown keys, wrong types, unknown names, severities: before anything is built (train checks too)
-            run_dir = _run_dir(cfg)
-            save_run_info(cfg, run_dir)  # config.yaml (resolved) + git_rev.txt
-            result = train(cfg)
-            write_metrics(run_dir, result)  # metrics.json, read by python -m torcsrl.sweep
-            return objective(result, cfg.get("optimized_metric"))  # the value a sweeper (Optuna) optimises
+            with graceful_termination():  # SIGTERM as Ctrl-C: train's finally blocks stop the collector's workers
+                validate(cfg)  # unknown keys, wrong types, unknown names, severities: before anything is built (train checks too)
+                run_dir = _run_dir(cfg)
+                with claim_run_dir(run_dir, resume=bool(cfg.checkpoint.resume), overwrite=bool(cfg.overwrite)):  # before config.yaml
+                    save_run_info(cfg, run_dir)  # config.yaml (resolved) + git_rev.txt
+                    result = train(cfg)
+                    write_metrics(run_dir, result)  # metrics.json, read by python -m torcsrl.sweep
+                return objective(result, cfg.get("optimized_metric"))  # the value a sweeper (Optuna) optimises
         except (CheckpointError, ValueError, RuntimeError) as err:
             if isinstance(err, RuntimeError) and not isinstance(err, CheckpointError) and "cannot be imported" not in str(err):
                 raise
             print(f"torcsrl.train: error: {err}", file=sys.stderr)
             sys.exit(2)
+        except OSError as err:
+            print(f"torcsrl.train: error: {os_error_line(err)}", file=sys.stderr)
+            sys.exit(2)
+        except KeyboardInterrupt as err:
+            last = latest_checkpoint(run_dir / "checkpoints") if run_dir is not None else None
+            resume = (f"; last checkpoint {last}; resume: python -m torcsrl.train run_dir={run_dir} checkpoint.resume=latest"
+                      if last else "; no checkpoint was written yet")
+            print(f"torcsrl.train: error: stopped by {getattr(err, 'name', 'SIGINT')}; workers stopped{resume}", file=sys.stderr)
+            sys.exit(exit_code(err))
 
     main()
 

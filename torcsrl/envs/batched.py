@@ -126,7 +126,11 @@ class TorchRaceEnv(EnvBase):
         return self._wrap(td)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = tensordict.get("action").detach().cpu().numpy().reshape(self.core.n, -1)
+        action = tensordict.get("action", None)
+        if action is None:
+            raise KeyError(f"step: the input tensordict has no 'action' entry (keys: {sorted(map(str, tensordict.keys()))}); "
+                           f"allowed: a float tensor [{', '.join(map(str, (*self.batch_size, self.core.action_dim)))}] in [-1, 1] under 'action'")
+        action = action.detach().cpu().numpy().reshape(self.core.n, -1)
         c = self.core
         c.step(action)
         td = self._observation()

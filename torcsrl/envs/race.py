@@ -53,6 +53,33 @@ def _as_list(x) -> list:
     return [x]
 
 
+def episode_setting_problems(**settings: Any) -> list[tuple[str, str]]:
+    """``(key, message)`` for each of ``spawn_jitter``, ``offtrack_grace_s``, ``no_progress_s``,
+    ``backwards_m`` given in ``settings`` that :class:`RaceCore` cannot use (also run by torcsrl.config)."""
+    out: list[tuple[str, str]] = []
+
+    def number(v: Any) -> float | None:
+        try:
+            x = float(v)
+        except (TypeError, ValueError):
+            return None
+        return x if math.isfinite(x) else None
+
+    if "spawn_jitter" in settings and settings["spawn_jitter"] is not None:
+        sj = settings["spawn_jitter"]
+        vals = [number(v) for v in sj] if isinstance(sj, (list, tuple)) else []
+        if len(vals) != 2 or any(v is None or v < 0 for v in vals):
+            out.append(("spawn_jitter", f"must be two finite half-ranges [d_m, yaw_rad] >= 0, got {sj!r}; allowed: e.g. [1.0, 0.1]"))
+    for key, none_ok in (("offtrack_grace_s", False), ("no_progress_s", True), ("backwards_m", False)):
+        if key not in settings or (settings[key] is None and none_ok):
+            continue
+        v = number(settings[key])
+        if v is None or v < 0:
+            out.append((key, f"must be a finite number >= 0, got {settings[key]!r}; allowed: [0, inf)"
+                             + (" or None (never)" if none_ok else "")))
+    return out
+
+
 class RaceCore:
     """N cars racing on their own tracks in one pybullet world.
 
@@ -133,6 +160,9 @@ class RaceCore:
         for s in self.surfaces:
             if s is not None and s not in _surf.ROAD_SURFACES:
                 raise ValueError(f"unknown surface {s!r}; road surfaces: {', '.join(_surf.ROAD_SURFACES)}")
+        for key, msg in episode_setting_problems(spawn_jitter=spawn_jitter, offtrack_grace_s=offtrack_grace_s,
+                                                 no_progress_s=no_progress_s, backwards_m=backwards_m):
+            raise ValueError(f"{key} {msg}")
         self.reward = Reward(reward, reward_scale)
         self.max_steps = int(max_steps)
         self.lap_limit = None if lap_limit is None else int(lap_limit)

@@ -25,6 +25,7 @@ Presets (weights):
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 
 import numpy as np
@@ -66,8 +67,16 @@ class Reward:
         else:
             raise ValueError(f"reward must be a preset name or a mapping of term weights, got {weights!r}")
         self.weights = {k: float(w.get(k, 0.0)) for k in REWARD_TERMS}
+        bad = {k: v for k, v in self.weights.items() if not math.isfinite(v)}
+        if bad:
+            raise ValueError(f"reward weights must be finite numbers, got {bad}; allowed: any finite weight per term of {', '.join(REWARD_TERMS)}")
         self._w = np.array([self.weights[k] for k in REWARD_TERMS])
-        self.scale = float(scale)
+        try:
+            self.scale = float(scale)
+        except (TypeError, ValueError):
+            self.scale = math.nan
+        if not math.isfinite(self.scale):
+            raise ValueError(f"reward_scale must be a finite number, got {scale!r}; allowed: any finite factor (e.g. 0.05)")
 
     @staticmethod
     def terms(vx, angle, track_pos, progress, terminated) -> np.ndarray:

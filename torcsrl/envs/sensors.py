@@ -19,6 +19,7 @@ speed into about [−1, 1]. :func:`normalize_transform` builds the TorchRL trans
 
 from __future__ import annotations
 
+import hashlib
 import math
 
 import numpy as np
@@ -96,6 +97,38 @@ def normalize_transform(keys=("rangefinder", "state"), n_beams: int = len(RANGEF
     return Compose(*ts)
 
 
+#: Edge-wall meshes handed to pybullet, kept for the life of the process: pybullet 3.2.x never releases the
+#: Python lists passed as ``vertices=`` / ``indices=`` to ``createCollisionShape`` (a reference leak), so fresh
+#: ``.tolist()`` lists per env grew RSS by ~2 MiB per env created and closed. Handing it the same list objects
+#: for the same walls bounds the cost by the number of distinct walls (tracks x slots x heights) instead.
+_WALL_MESHES: dict[tuple, tuple[list, list]] = {}
+_WALL_MESHES_MAX = 512  # distinct walls kept; beyond it fresh lists are made (and leak, as before)
+
+
+def _wall_mesh(left: np.ndarray, right: np.ndarray, x_offset_m: float, height_m: float) -> tuple[list, list]:
+    """(vertices, indices) lists of the vertical walls along both track edges, shifted by ``x_offset_m`` [m] and
+    ``height_m`` [m] above and below the beam plane; the same list objects for the same walls (see above)."""
+    key = (hashlib.sha1(np.ascontiguousarray(left).tobytes() + np.ascontiguousarray(right).tobytes()).hexdigest(),
+           len(left), len(right), x_offset_m, height_m)
+    hit = _WALL_MESHES.get(key)
+    if hit is not None:
+        return hit
+    offset = np.array([x_offset_m, 0.0])
+    verts, tris, base = [], [], 0
+    for edge in (left, right):
+        m = len(edge)
+        e = edge + offset
+        verts.append(np.concatenate([np.c_[e, np.full(m, -height_m)], np.c_[e, np.full(m, height_m)]]))
+        i = np.arange(m)
+        j = (i + 1) % m
+        tris.append(np.concatenate([np.stack([i, j, i + m], 1), np.stack([j, j + m, i + m], 1)]).ravel() + base)
+        base += 2 * m
+    mesh = (np.concatenate(verts).tolist(), np.concatenate(tris).astype(int).tolist())
+    if len(_WALL_MESHES) < _WALL_MESHES_MAX:
+        _WALL_MESHES[key] = mesh
+    return mesh
+
+
 class Rangefinder:
     """Beams from each car to the edges of its track, cast in a private pybullet client.
 
@@ -128,17 +161,8 @@ class Rangefinder:
         if slot in self._bodies:
             return
         offset = np.array([slot * 50_000.0, 0.0])
-        verts, tris, base = [], [], 0
-        for edge in (track.left_edge, track.right_edge):
-            m = len(edge)
-            e = edge + offset
-            verts.append(np.concatenate([np.c_[e, np.full(m, -self.height_m)], np.c_[e, np.full(m, self.height_m)]]))
-            i = np.arange(m)
-            j = (i + 1) % m
-            tris.append(np.concatenate([np.stack([i, j, i + m], 1), np.stack([j, j + m, i + m], 1)]).ravel() + base)
-            base += 2 * m
-        shape = p.createCollisionShape(p.GEOM_MESH, vertices=np.concatenate(verts).tolist(),
-                                       indices=np.concatenate(tris).astype(int).tolist(),
+        verts, indices = _wall_mesh(track.left_edge, track.right_edge, float(offset[0]), self.height_m)
+        shape = p.createCollisionShape(p.GEOM_MESH, vertices=verts, indices=indices,
                                        flags=p.GEOM_FORCE_CONCAVE_TRIMESH, physicsClientId=self.client)
         self._bodies[slot] = p.createMultiBody(0, shape, physicsClientId=self.client)
         self._offsets[slot] = (float(offset[0]), float(offset[1]))

@@ -577,6 +577,15 @@ class KeepClean(Transform):
             observation_spec[o] = observation_spec[i].clone()
         return observation_spec
 
+    def transform_output_spec(self, output_spec):
+        """Observation spec only (KeepClean leaves reward and done alone). TorchRL's default also demands a
+        spec for every out key, which an ``optional`` copy of a sensor the env lacks (``pixels_clean`` on a
+        rangefinder + state env) cannot have; :meth:`transform_observation_spec` already raises for a
+        missing key that is not optional."""
+        output_spec = output_spec.clone()
+        output_spec["full_observation_spec"] = self.transform_observation_spec(output_spec["full_observation_spec"])
+        return output_spec
+
 
 # ---------------------------------------------------------------------------------------
 def _walk(obj) -> list[Degradation]:

@@ -7,10 +7,15 @@ against what the current run expects and raises :class:`CheckpointError` with ON
 what was expected, for a file from another algorithm or observation layout, or a file that is
 corrupt or truncated. Files are written to ``<name>.tmp``, fsynced, then renamed over the final
 name, so a crash leaves either the old file or the new one, never half of one.
+
+Checksums: ``meta["sha256"]`` is a SHA-256 over every value of the payload (tensor bytes, dtypes, shapes,
+and every other leaf), so bytes overwritten inside an otherwise loadable file are caught on load with one
+line naming the file (files written before checksums existed, like older shipped drivers, load unchecked).
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
 import re
 import shutil
@@ -39,18 +44,55 @@ def _fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
+def payload_digest(payload: Any) -> str:
+    """SHA-256 over ``payload`` (nested dicts / lists / tuples of tensors and plain values), in order; the
+    checkpoint's own ``meta["sha256"]`` is left out."""
+    h = hashlib.sha256()
+
+    def walk(x: Any) -> None:
+        if isinstance(x, torch.Tensor):
+            t = x.detach().cpu().contiguous()
+            h.update(f"T{t.dtype}{tuple(t.shape)}".encode())
+            if t.numel():
+                h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.dtype != torch.bool
+                         else t.numpy().tobytes())
+        elif isinstance(x, dict):
+            items = [(k, v) for k, v in x.items() if not (k == "sha256" and isinstance(v, str) and len(v) == 64)]
+            h.update(f"D{len(items)}".encode())
+            for k, v in items:
+                h.update(repr(k).encode())
+                walk(v)
+        elif isinstance(x, (list, tuple)):
+            h.update(f"{'L' if isinstance(x, list) else 'U'}{len(x)}".encode())
+            for v in x:
+                walk(v)
+        else:
+            h.update(repr(x).encode())
+
+    walk(payload)
+    return h.hexdigest()
+
+
 def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> Path:
-    """Write ``payload`` (which must hold a ``"meta"`` dict) atomically to ``path``."""
+    """Write ``payload`` (which must hold a ``"meta"`` dict) atomically to ``path``, with its checksum."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     meta = dict(payload.get("meta", {}))
+    meta.pop("sha256", None)
     meta.update(format=FORMAT, version=VERSION)
     payload = {**payload, "meta": meta}
+    meta["sha256"] = payload_digest(payload)
     tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        torch.save(payload, f)
-        f.flush()
-        os.fsync(f.fileno())
+    try:
+        with open(tmp, "wb") as f:
+            torch.save(payload, f)
+            f.flush()
+            os.fsync(f.fileno())
+    except (OSError, RuntimeError) as err:  # a full disk: torch's writer raises RuntimeError, plain writes OSError
+        tmp.unlink(missing_ok=True)
+        reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err).splitlines()[0][:200]
+        raise CheckpointError(f"cannot write checkpoint {path} ({reason}); the older checkpoints are intact; allowed: a folder "
+                              "this user can write, on a disk with free space") from None
     os.replace(tmp, path)
     _fsync_dir(path.parent)
     return path
@@ -72,6 +114,9 @@ def load_checkpoint(path: str | Path, expect: dict[str, Any] | None = None) -> d
         raise CheckpointError(f"checkpoint {path} is not a {FORMAT} file (no torcsrl meta header); expected one written by torcsrl.train")
     if meta.get("version") != VERSION:
         raise CheckpointError(f"checkpoint {path} is {FORMAT} v{meta.get('version')}; this torcsrl reads v{VERSION}")
+    if "sha256" in meta and payload_digest(payload) != meta["sha256"]:
+        raise CheckpointError(f"checkpoint {path} is corrupt: its contents do not match their SHA-256 checksum (bytes changed "
+                              "after it was written); allowed: an intact checkpoint (an older one, or a fresh copy)")
     for key, want in (expect or {}).items():
         got = meta.get(key)
         if got != want:
@@ -97,6 +142,27 @@ def latest_checkpoint(ckpt_dir: str | Path) -> Path | None:
     return cks[-1] if cks else None
 
 
+def previous_good(ckpt_dir: str | Path, before: Path, check=None) -> Path | None:
+    """The newest checkpoint older than ``before`` that loads and passes its checksums (and ``check(path)``,
+    e.g. its replay buffer's), or None."""
+    for p in reversed(list_checkpoints(ckpt_dir)):
+        if p == Path(before) or _frames(p) >= _frames(Path(before)):
+            continue
+        try:
+            load_checkpoint(p)
+            if check is not None:
+                check(p)
+        except (CheckpointError, ValueError):
+            continue
+        return p
+    return None
+
+
+def _frames(p: Path) -> int:
+    m = _CKPT_RE.match(p.name)
+    return int(m.group(1)) if m else -1
+
+
 def save_dir_atomically(final: Path, write) -> Path:
     """Call ``write(tmp_dir)`` then rename ``tmp_dir`` to ``final`` (replacing an older ``final``)."""
     final = Path(final)
@@ -104,7 +170,13 @@ def save_dir_atomically(final: Path, write) -> Path:
     tmp = final.with_name(final.name + ".tmp")
     if tmp.exists():
         shutil.rmtree(tmp)
-    write(tmp)
+    try:
+        write(tmp)
+    except (OSError, RuntimeError) as err:  # a full disk (memmap and torch writers raise RuntimeError too)
+        shutil.rmtree(tmp, ignore_errors=True)
+        reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err).splitlines()[0][:200]
+        raise CheckpointError(f"cannot write {final} ({reason}); the older copies are intact; allowed: a folder this user "
+                              "can write, on a disk with free space") from None
     _fsync_dir(tmp)
     if final.exists():
         shutil.rmtree(final)

@@ -47,6 +47,8 @@ from typing import Sequence
 import torch
 from tensordict import TensorDict, TensorDictBase
 
+from torcsrl.utils.faults import OutputError, file_digest
+
 FORMAT = "torcsrl-replay"
 VERSION = 1
 FLAGS = ("done", "terminated", "truncated")
@@ -180,9 +182,14 @@ class ReplayBuffer:
     def _allocate(self, row: TensorDict, final: TensorDict) -> None:
         rows, finals = _empty_like_rows(row, self.rows), _empty_like_rows(final, self.rows)
         if self.storage_kind == "disk":
-            self.path.mkdir(parents=True, exist_ok=True)
-            rows = rows.memmap_like(prefix=str(self.path / "rows"))
-            finals = finals.memmap_like(prefix=str(self.path / "finals"))
+            try:
+                self.path.mkdir(parents=True, exist_ok=True)
+                rows = rows.memmap_like(prefix=str(self.path / "rows"))
+                finals = finals.memmap_like(prefix=str(self.path / "finals"))
+            except (OSError, RuntimeError) as err:  # tensordict raises RuntimeError when a file cannot be sized (full disk)
+                reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err).splitlines()[0][-120:]
+                raise OutputError(f"buffer.path: cannot write the disk replay buffer in {self.path} ({reason}); allowed: a folder "
+                                  "this user can write, on a disk with free space") from None
         self._rows, self._finals = rows, finals
         self._obs = [self._rows[k] for k in self.obs_keys]
         self._fin = [self._finals[k] for k in self.obs_keys]
@@ -320,10 +327,34 @@ class ReplayBuffer:
                 self._finals[: min(self.finals_written, self.rows)].memmap(prefix=str(path / "finals"), copy_existing=True)
         if self.priorities is not None:
             torch.save(self.priorities.state_dict(), path / "priorities.pt")
-        (path / "meta.json").write_text(json.dumps(self._meta()))
+        sums = {str(f.relative_to(path)): {"bytes": f.stat().st_size, "sha256": file_digest(f)}
+                for f in sorted(path.rglob("*")) if f.is_file() and f != path / "meta.json"}
+        (path / "meta.json").write_text(json.dumps({**self._meta(), "checksums": sums}))
 
-    def loads(self, path: str | Path) -> None:
-        """Read a folder written by :meth:`dumps` (same layout: row for row; otherwise the newest rows)."""
+    @staticmethod
+    def verify(path: str | Path) -> None:
+        """Check the files of a dump against the sizes and SHA-256 checksums in its meta.json (dumps written before
+        checksums existed pass unchecked); ValueError naming the first file that differs, before anything is read."""
+        path = Path(path)
+        try:
+            meta = json.loads((path / "meta.json").read_text())
+        except (OSError, ValueError):
+            raise ValueError(f"{path} is not a replay buffer folder written by torcsrl (no readable meta.json)") from None
+        for rel, want in (meta.get("checksums") or {}).items():
+            f = path / rel
+            if not f.is_file():
+                raise ValueError(f"replay buffer file {f} is missing; allowed: a folder written whole by ReplayBuffer.dumps")
+            size = f.stat().st_size
+            if size != want["bytes"]:
+                raise ValueError(f"replay buffer file {f} is {size} bytes, its checksum record says {want['bytes']} (truncated "
+                                 "or extended); allowed: an intact dump (an older checkpoint's, or a fresh copy)")
+            if file_digest(f) != want["sha256"]:
+                raise ValueError(f"replay buffer file {f} does not match its SHA-256 checksum (bytes changed after it was "
+                                 "written); allowed: an intact dump (an older checkpoint's, or a fresh copy)")
+
+    def loads(self, path: str | Path, verified: bool = False) -> None:
+        """Read a folder written by :meth:`dumps` (same layout: row for row; otherwise the newest rows), after checking its
+        files against their checksums (:meth:`verify`; ``verified=True``: the caller did)."""
         path = Path(path)
         try:
             meta = json.loads((path / "meta.json").read_text())
@@ -337,8 +368,14 @@ class ReplayBuffer:
             raise ValueError(f"replay buffer {path} stores extra keys {meta.get('extra_keys', [])}; this buffer has {self.extra_keys}")
         if meta["written"] == 0:
             return
-        rows = TensorDict.load_memmap(str(path / "rows"))
-        finals = TensorDict.load_memmap(str(path / "finals")) if meta["finals_written"] else None
+        if not verified:
+            self.verify(path)  # before load_memmap, which would zero-fill (and extend) a truncated file
+        try:
+            rows = TensorDict.load_memmap(str(path / "rows"))
+            finals = TensorDict.load_memmap(str(path / "finals")) if meta["finals_written"] else None
+        except Exception as err:  # noqa: BLE001 - a missing or damaged rows/ or finals/ folder, whatever tensordict raises
+            raise ValueError(f"replay buffer {path} is incomplete: its rows/ or finals/ folder is missing or unreadable "
+                             f"({type(err).__name__}); allowed: a folder written whole by ReplayBuffer.dumps") from None
         if self._rows is None:
             fin = finals[:1] if finals is not None else TensorDict({k: rows[k][:1] for k in self.obs_keys}, batch_size=[1])
             self._allocate(rows[:1], fin)

@@ -26,6 +26,7 @@ spline and resampled every metre.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +39,11 @@ from torcsrl.envs.track import Track, TrackError
 SAMPLE_SPACING_M = 1.0
 #: Largest closing error a segment list may have [m].
 MAX_CLOSING_ERROR_M = 1.0
+#: Longest lap a track file may describe [m] (the longest bundled track is 5.6 km); checked before sampling,
+#: so an absurd length fails at once instead of allocating one sample per metre.
+MAX_TRACK_LENGTH_M = 100_000.0
+#: Widest a road may be [m], either side of the centreline.
+MAX_HALF_WIDTH_M = 100.0
 
 _META_KEYS = {"name", "description", "character", "surface", "width", "w_left", "w_right"}
 _SEGMENT_KEYS = {"type", "length", "radius", "angle", "turn", "width", "w_left", "w_right", "surface"}
@@ -46,16 +52,21 @@ _SEGMENT_KEYS = {"type", "length", "radius", "angle", "turn", "width", "w_left",
 def _widths(spec: dict, default: tuple[float, float], where: str) -> tuple[float, float]:
     if "w_left" in spec or "w_right" in spec:
         try:
-            return float(spec.get("w_left", default[0])), float(spec.get("w_right", default[1]))
+            w = float(spec.get("w_left", default[0])), float(spec.get("w_right", default[1]))
         except (TypeError, ValueError):
             raise TrackError(f"{where}: w_left / w_right must be numbers [m]") from None
-    if "width" in spec:
+    elif "width" in spec:
         try:
-            w = float(spec["width"])
+            full = float(spec["width"])
         except (TypeError, ValueError):
             raise TrackError(f"{where}: width must be a number [m], got {spec['width']!r}") from None
-        return 0.5 * w, 0.5 * w
-    return default
+        w = 0.5 * full, 0.5 * full
+    else:
+        return default
+    if not all(math.isfinite(x) and 0 < x <= MAX_HALF_WIDTH_M for x in w):
+        raise TrackError(f"{where}: widths must be finite and positive, at most {2 * MAX_HALF_WIDTH_M:g} m in all; got "
+                         f"w_left {w[0]:g} m, w_right {w[1]:g} m")
+    return w
 
 
 def _surface(spec: dict, default: int, where: str) -> int:
@@ -70,9 +81,11 @@ def _surface(spec: dict, default: int, where: str) -> int:
 def read_yaml(path: Path) -> dict:
     """Read a track's YAML file into a dict, naming the file on any problem."""
     try:
-        raw = yaml.safe_load(Path(path).read_text())
+        raw = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
     except yaml.YAMLError as err:
         raise TrackError(f"{path}: not valid YAML ({str(err).splitlines()[0]})") from None
+    except UnicodeDecodeError:
+        raise TrackError(f"{path}: not a text file (binary content); a track file is YAML with 'segments' or 'points'") from None
     except OSError as err:
         raise TrackError(f"{path}: cannot read ({err.strerror})") from None
     if not isinstance(raw, dict):
@@ -100,6 +113,7 @@ def segments_to_track(raw: dict, path: Path | str = "<segments>", ds: float = SA
     pts, kap, wl, wr, sid = [], [], [], [], []
     x = y = heading = 0.0
     total_turn = 0.0
+    lap_m = 0.0  # length so far [m]
     prev_k = None
     for n, seg in enumerate(segs, start=1):
         where = f"{path}: segment {n}"
@@ -133,8 +147,12 @@ def segments_to_track(raw: dict, path: Path | str = "<segments>", ds: float = SA
             if isinstance(err, TrackError):
                 raise
             raise TrackError(f"{where}: length, radius and angle must be numbers") from None
-        if length <= 0:
-            raise TrackError(f"{where}: length must be positive, got {length}")
+        if not math.isfinite(length) or length <= 0 or (kind == "arc" and not math.isfinite(radius)):
+            raise TrackError(f"{where}: length, radius and angle must be finite and positive, got "
+                             + ", ".join(f"{k} {seg[k]!r}" for k in ("length", "radius", "angle") if k in seg))
+        lap_m += length
+        if lap_m > MAX_TRACK_LENGTH_M:
+            raise TrackError(f"{where}: the segments add up to {lap_m:.4g} m; allowed: a lap of at most {MAX_TRACK_LENGTH_M:g} m")
         count = max(1, int(np.ceil(length / ds)))
         u = np.arange(count) * (length / count)  # arc length into the segment of each sample
         if k == 0.0:
@@ -193,7 +211,9 @@ def _smooth_widths(w: np.ndarray, ds: float, span_m: float = 20.0) -> np.ndarray
 def _read_points(path: Path) -> np.ndarray:
     """Read a centreline CSV into columns (x, y, w_left, w_right) [m]."""
     try:
-        lines = Path(path).read_text().splitlines()
+        lines = Path(path).read_text(encoding="utf-8").splitlines()
+    except UnicodeDecodeError:
+        raise TrackError(f"{path}: not a text file (binary content); expected CSV rows x_m, y_m, w_tr_right_m, w_tr_left_m") from None
     except OSError as err:
         raise TrackError(f"{path}: cannot read ({err.strerror})") from None
     header = None
@@ -246,8 +266,11 @@ def points_to_track(raw: dict, path: Path, ds: float = SAMPLE_SPACING_M) -> Trac
     if gap > 3.0 * spacing + 1.0:
         raise TrackError(f"{csv}: the centreline does not close: the last point is {gap:.1f} m from the first "
                          f"(points are {spacing:.1f} m apart)")
-    if (pts[:, 2:] <= 0).any():
-        raise TrackError(f"{csv}: widths must be positive")
+    if (pts[:, 2:] <= 0).any() or (pts[:, 2:] > MAX_HALF_WIDTH_M).any():
+        raise TrackError(f"{csv}: widths must be positive and at most {MAX_HALF_WIDTH_M:g} m each side")
+    perimeter = float(step.sum() + gap)
+    if perimeter > MAX_TRACK_LENGTH_M:
+        raise TrackError(f"{csv}: the centreline is {perimeter:.4g} m long; allowed: a lap of at most {MAX_TRACK_LENGTH_M:g} m")
     surface, _, sid = _meta(raw, path)
     smoothing = float(raw.get("smoothing", 0.5)) * len(pts)
     closed = np.vstack([pts, pts[:1]])
