@@ -180,16 +180,20 @@ def main(argv: list[str] | None = None) -> int:
         print(f"wrote {path}")
         return 0
     hz = {s: _hz(s) for s in specs}
-    rows = run_grid(specs, tracks, args.surfaces, args.laps, args.workers, hz)
     exp_specs = sorted(set(hz.values()))
     expert: dict[tuple[str, str], float] = {}
     if args.expert_json:
-        old = json.loads(Path(args.expert_json).read_text())
+        try:
+            old = json.loads(Path(args.expert_json).read_text())
+            old["expert"]
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            ap.error(f"--expert-json {args.expert_json}: not a generalisation.json with expert laps ({type(err).__name__}: {err})")
         rates = old.get("expert_hz", exp_specs)
         if sorted(rates) != exp_specs:
             ap.error(f"--expert-json {args.expert_json}: its reference laps were driven at {rates} Hz, these drivers run at {exp_specs} Hz")
         expert = {tuple(k.split("|")): float(v) for k, v in old["expert"].items()
                   if k.split("|")[0] in tracks and k.split("|")[1] in args.surfaces}
+    rows = run_grid(specs, tracks, args.surfaces, args.laps, args.workers, hz)
     for rate in exp_specs:  # the expert at each driver's control rate (2 laps: its fastest is a flying lap)
         todo = [t for t in tracks if any((t, u) not in expert for u in args.surfaces)]
         for r in run_grid(["expert"], todo, args.surfaces, 2, args.workers, {"expert": rate}) if todo else []:
