@@ -41,7 +41,7 @@ __all__ = ["DemoError", "make_demo_env", "label_rollouts", "write_demos", "load_
 META = "demos.json"
 EXTRA_KEYS = ("expert_action",)
 #: Teachers that label demonstrations (:func:`make_teacher`).
-TEACHERS = ("expert", "sensor")
+TEACHERS = ("expert", "sensor", "sensor_grip")
 
 
 class DemoError(ValueError):
@@ -49,15 +49,20 @@ class DemoError(ValueError):
 
 
 def make_demo_env(cfg: DictConfig, seed: int):
-    """One car in the run's env (its tracks, procedural pool, surfaces), with the clean ``state``
-    kept as ``state_clean`` ahead of the run's observation transforms."""
+    """One car in the run's env (its tracks, procedural pool, surfaces), with the clean ``rangefinder`` and
+    ``state`` kept as ``*_clean`` ahead of the run's observation transforms. The teacher reads those; they are
+    added to the env when the run's sensors lack them (a camera student's teacher sees the full state: privileged
+    distillation), and the student reads only its own ``obs_keys``."""
     from torcsrl.train import _transformed, build_base_env, env_kwargs, observation_transforms
     from torcsrl.transforms import KeepClean
 
     if cfg.env.name != "race":
         raise DemoError(f"demonstrations need the race env (the expert drives a track); env.name={cfg.env.name!r}")
     sensors = list(cfg.env.sensors)
-    extra = {} if "state" in sensors else {"sensors": tuple(sensors) + ("state",)}
+    teacher = str(cfg.demos.get("teacher", "expert")) if cfg.get("demos") else "expert"
+    need = ("rangefinder", "state") if teacher.startswith("sensor") else ("state",)
+    missing = tuple(k for k in need if k not in sensors)
+    extra = {"sensors": tuple(sensors) + missing} if missing else {}
     kw = env_kwargs(cfg.env, seed=int(seed), device="cpu", num_cars=1,
                     max_steps=int(cfg.demos.episode_steps) if cfg.get("demos") else int(cfg.env.max_steps), **extra)
     base = build_base_env("race", kw)
@@ -68,7 +73,9 @@ def make_demo_env(cfg: DictConfig, seed: int):
 @torch.no_grad()
 def make_teacher(name: str):
     """The labelling policy: ``expert`` (:class:`~torcsrl.policies.ExpertPolicy`, racing line + speed profile from the
-    track map) or ``sensor`` (:class:`~torcsrl.policies.SensorDriver`, a function of the observation alone), reading
+    track map), ``sensor`` (:class:`~torcsrl.policies.SensorDriver`, a function of the observation alone) or
+    ``sensor_grip`` (the same driver told the friction under the car, ``("info", "surfaceMu")``: it brakes for
+    the surface it is on — privileged knowledge a camera student can see and a rangefinder student cannot), reading
     the clean readings kept under ``*_clean``."""
     from torcsrl.policies import ExpertPolicy, SensorDriver
 
@@ -76,6 +83,8 @@ def make_teacher(name: str):
         return ExpertPolicy(state_key="state_clean")
     if name == "sensor":
         return SensorDriver(rangefinder_key="rangefinder_clean", state_key="state_clean")
+    if name == "sensor_grip":
+        return SensorDriver(decel_per_mu=SensorDriver.GRIP_DECEL_PER_MU, rangefinder_key="rangefinder_clean", state_key="state_clean")
     raise DemoError(f"demos.teacher={name!r} is not known; allowed: {', '.join(TEACHERS)}")
 
 

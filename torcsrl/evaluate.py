@@ -65,7 +65,7 @@ __all__ = [
 #: Version of the episode protocol (part of every cache key: bump it when a metric's meaning changes).
 PROTOCOL_VERSION = 1
 #: Sensor keys in the env's canonical order.
-_SENSOR_ORDER = ("rangefinder", "state", "pixels", "depth")
+_SENSOR_ORDER = ("rangefinder", "state", "telemetry", "pixels", "depth")
 
 
 class EvalError(ValueError):

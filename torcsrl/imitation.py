@@ -68,7 +68,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         eval_envs = make_eval_envs(cfg)
         loggers = make_loggers(cfg.logger.backends, run_dir, cfg.logger.exp_name, cfg.logger.wandb_project, cfg.logger.wandb_mode)
         _, img = split_obs_keys(env.observation_spec, obs_keys)
-        net = SimpleNamespace(actor_network=actor, obs=ObsUnpacker(obs_keys, img))
+        net = SimpleNamespace(actor_network=actor, obs=ObsUnpacker(obs_keys, img, int(cfg.algo.encoder.augment_shift)))
         policy = TensorDictModule(actor, in_keys=obs_keys, out_keys=["action"])
         buffers = [demos]
         rounds = int(cfg.demos.dagger_rounds) if algo == "dagger" else 0

@@ -77,7 +77,7 @@ REFERENCE_POLICY = Path(__file__).resolve().parent / "assets" / "reference_dagge
 #: The shipped RL (TD3) driver, ``reference-td3`` (``reference_td3.md``).
 REFERENCE_RL_POLICY = Path(__file__).resolve().parent / "assets" / "reference_td3.pt"
 #: Names of the built-in policies (anything else is a checkpoint path).
-BUILTIN_POLICIES = ("expert", "heuristic", "sensor", "random", "reference", "reference-td3")
+BUILTIN_POLICIES = ("expert", "heuristic", "sensor", "sensor_grip", "random", "reference", "reference-td3")
 
 
 class PolicyError(ValueError):
@@ -154,7 +154,9 @@ class Policy:
         have = set(spec.keys(True, True))
         missing = [k for k in self.obs_keys if k not in have]
         if missing:
-            raise PolicyError(f"policy {self.name!r} reads {missing}, which the env does not produce (it has {sorted(map(str, have))})")
+            want = self._layout_hint() or ", ".join(self.obs_keys)
+            raise PolicyError(f"policy {self.name!r} reads {missing}, which the env does not produce: it expects {want}, "
+                              f"the env has {sorted(map(str, have))}")
         for k, shape in getattr(self, "obs_shapes", {}).items():
             got = tuple(spec[k].shape[nb:])
             if got != tuple(shape):
@@ -262,7 +264,7 @@ class CheckpointPolicy(Policy):
         if cfg.env.get("normalize", True):
             from torcsrl.envs.sensors import obs_scale
 
-            for k in ("rangefinder", "state"):
+            for k in ("rangefinder", "state", "telemetry"):
                 if k in self.obs_shapes:
                     self.obs_divisors[k] = torch.as_tensor(obs_scale(k, int(self.obs_shapes[k][-1])))
         rec = meta.get("pipeline")  # written since the pipeline record exists: what the actor was trained on
@@ -481,6 +483,11 @@ class SensorDriver(Policy):
     version (the teacher of ``reference_dagger.pt``) is ``SensorDriver(**SensorDriver.V1)``.
     """
 
+    #: Braking the grip-aware teacher plans with per unit of friction [m/s^2] (``decel_per_mu``): 7.5 on asphalt,
+    #: 5.25 wet, 4.5 dirt (the surface-blind teacher's decel), 3.75 gravel. Screened on training tracks only
+    #: (set:train's fast_straights, hairpins, esses + gen-10001/2/4, 2 laps at 10 Hz): 24/24 laps on asphalt, wet,
+    #: dirt and gravel at 1.17-1.19x the expert (the surface-blind teacher: 1.45x on asphalt).
+    GRIP_DECEL_PER_MU = 7.5
     #: The first teacher's gains (no speed scaling, a pedal step, softer traction control, decel 3.5).
     V1 = {"decel": 3.5, "k_v": 0.3, "slip_max": 0.12, "v_gain_free": math.inf, "v_gain_axis": math.inf,
           "v_gain_pos": math.inf, "pedal_ramp_ms": 0.0}
@@ -491,8 +498,8 @@ class SensorDriver(Policy):
                  k_pos: float = 0.15, k_free: float = 0.8, p: float = 6.0, k_beta: float = -1.0, slip_max: float = 0.05,
                  tc_width: float = 3.0, u_slide: float = 0.3, k_slide: float = 5.0, k_v: float = 0.1, sat: float = 0.9,
                  v_gain_free: float = 5.0, v_gain_axis: float = math.inf, v_gain_pos: float = 15.0,
-                 pedal_ramp_ms: float = 1.0, vehicle: str = "default", rangefinder_key: str = "rangefinder",
-                 state_key: str = "state") -> None:
+                 pedal_ramp_ms: float = 1.0, decel_per_mu: float | None = None, vehicle: str = "default",
+                 rangefinder_key: str = "rangefinder", state_key: str = "state") -> None:
         from torcsrl.envs.sensors import RANGEFINDER_ANGLES_DEG
         from torcsrl.envs.vehicle import VehicleParams
 
@@ -503,7 +510,10 @@ class SensorDriver(Policy):
         self.fingerprint = _code_fingerprint(SensorDriver)
         self.k = SimpleNamespace(decel=decel, d0=d0, v_min=v_min, v_max=v_max, k_axis=k_axis, k_pos=k_pos, k_free=k_free, p=p,
                                  k_beta=k_beta, slip_max=slip_max, tc_width=tc_width, u_slide=u_slide, k_slide=k_slide, k_v=k_v, sat=sat,
-                                 v_gain=(float(v_gain_free), float(v_gain_axis), float(v_gain_pos)), pedal_ramp_ms=float(pedal_ramp_ms))
+                                 v_gain=(float(v_gain_free), float(v_gain_axis), float(v_gain_pos)), pedal_ramp_ms=float(pedal_ramp_ms),
+                                 decel_per_mu=None if decel_per_mu is None else float(decel_per_mu))
+        if decel_per_mu is not None:
+            self.spec = f"sensor-grip{float(decel_per_mu):g}"
         self.max_steer, self.wheel_r = float(prm.max_steer), float(prm.wheel_radius)
         self.keys = (rangefinder_key, state_key)
         self.ang = np.radians(np.asarray(RANGEFINDER_ANGLES_DEG, dtype=float))
@@ -512,9 +522,11 @@ class SensorDriver(Policy):
         self.obs_shapes = {"rangefinder": (len(self.ang),)}
         self._i = {n: _state_slot(n) for n in ("angle_rad", "trackPos", "speedX_kmh", "speedY_kmh", "wheelSpinVel_rl", "wheelSpinVel_rr")}
 
-    def act(self, r: np.ndarray, st: np.ndarray) -> tuple[float, float]:
-        """(steer, throttle_brake) in [-1, 1] from one car's beams [m] and state (raw units)."""
+    def act(self, r: np.ndarray, st: np.ndarray, mu: float | None = None) -> tuple[float, float]:
+        """(steer, throttle_brake) in [-1, 1] from one car's beams [m] and state (raw units); ``mu`` [-], the
+        friction under the car, sets the braking it plans with when the driver is grip-aware (``decel_per_mu``)."""
         k, i = self.k, self._i
+        decel = k.decel if k.decel_per_mu is None or mu is None else k.decel_per_mu * float(mu)
         v = float(st[i["speedX_kmh"]]) / 3.6
         beta = math.atan2(float(st[i["speedY_kmh"]]) / 3.6, max(v, 5.0))  # slip angle [rad]
         angle, tp = float(st[i["angle_rad"]]) + k.k_beta * beta, float(st[i["trackPos"]])
@@ -528,7 +540,7 @@ class SensorDriver(Policy):
             g_free, g_axis, g_pos = (min(1.0, vg / max(v, 1.0)) for vg in k.v_gain)
             steer_rad = (g_free * k.k_free * theta * min(1.0, 60.0 / max(d, 1.0)) - g_axis * k.k_axis * angle
                          - g_pos * k.k_pos * tp)
-            v_t = min(k.v_max, max(k.v_min, math.sqrt(2.0 * k.decel * max(d - k.d0, 0.0))))
+            v_t = min(k.v_max, max(k.v_min, math.sqrt(2.0 * decel * max(d - k.d0, 0.0))))
         steer = max(-1.0, min(1.0, steer_rad / self.max_steer))
         if abs(steer) > k.sat:
             v_t = min(v_t, 0.9 * v)
@@ -549,7 +561,14 @@ class SensorDriver(Policy):
     def __call__(self, td: TensorDictBase) -> TensorDictBase:
         r = td.get(self.keys[0]).reshape(-1, len(self.ang)).numpy()
         st = td.get(self.keys[1]).reshape(r.shape[0], -1).numpy()
-        out = torch.tensor([self.act(r[j], st[j]) for j in range(r.shape[0])], dtype=torch.float32)
+        if self.k.decel_per_mu is not None:
+            mu = td.get(("info", "surfaceMu"), None)
+            if mu is None:
+                raise ValueError("a grip-aware SensorDriver (decel_per_mu) reads ('info', 'surfaceMu'), which this tensordict lacks")
+            mu = mu.reshape(-1).tolist()
+        else:
+            mu = [None] * r.shape[0]
+        out = torch.tensor([self.act(r[j], st[j], mu[j]) for j in range(r.shape[0])], dtype=torch.float32)
         td.set("action", out.reshape(*td.batch_size, 2))
         return td
 
@@ -592,6 +611,8 @@ def load_policy(spec: str | Path | Policy) -> Policy:
         return HeuristicPolicy()
     if s == "sensor":
         return SensorDriver()
+    if s == "sensor_grip":
+        return SensorDriver(decel_per_mu=SensorDriver.GRIP_DECEL_PER_MU)
     if s == "random":
         return RandomPolicy()
     if s == "reference":

@@ -28,7 +28,9 @@ def action_bounds(env: EnvBase) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def encoder(cfg: Any, env: EnvBase, obs_keys: list[str]) -> ObsEncoder:
-    return ObsEncoder(env.observation_spec, obs_keys, cnn_channels=tuple(cfg.encoder.cnn_channels), feature_dim=int(cfg.encoder.feature_dim))
+    e = cfg.encoder
+    return ObsEncoder(env.observation_spec, obs_keys, cnn_channels=tuple(e.cnn_channels), feature_dim=int(e.feature_dim),
+                      cnn_kernels=e.get("cnn_kernels"), cnn_strides=e.get("cnn_strides"))
 
 
 def actor(cfg: Any, env: EnvBase, obs_keys: list[str]) -> DeterministicActor:

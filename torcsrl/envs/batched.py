@@ -25,7 +25,7 @@ from torcsrl.envs.race import INFO_KEYS, RaceCore
 from torcsrl.envs.rewards import REWARD_TERMS
 
 # order matters: it is the column order of the info array built in _observation
-_FLOAT_INFO = ("distFromStart", "distRaced", "curLapTime", "lastLapTime", "bestLapTime") + tuple(
+_FLOAT_INFO = ("distFromStart", "distRaced", "curLapTime", "lastLapTime", "bestLapTime", "surfaceMu") + tuple(
     f"reward_{t}" for t in REWARD_TERMS)
 assert set(_FLOAT_INFO) | {"lap"} >= set(INFO_KEYS)
 
@@ -63,7 +63,7 @@ class TorchRaceEnv(EnvBase):
             full = (*b, *shape)
             if key == "rangefinder":
                 obs[key] = Bounded(-1.0, c.rangefinder.range_m, full, dtype=torch.float32, device=self.device)
-            elif key == "state":
+            elif key in ("state", "telemetry"):
                 obs[key] = Unbounded(full, dtype=torch.float32, device=self.device)
             elif key == "pixels":
                 obs[key] = Bounded(0, 255, full, dtype=torch.uint8, device=self.device)
@@ -98,8 +98,8 @@ class TorchRaceEnv(EnvBase):
         for k, v in c.obs.items():
             out[k] = self._t(v if k == "pixels" else v.astype(np.float32, copy=False))
         cur = np.where(c.lap_timed, c.time - c.lap_start_time, 0.0)
-        floats = np.stack([c.s, c.dist_raced, cur, c.last_lap_time, c.best_lap_time, *c.terms], axis=1)
-        floats = self._t(floats.astype(np.float32))  # [(N,) 11]
+        floats = np.stack([c.s, c.dist_raced, cur, c.last_lap_time, c.best_lap_time, c.fleet.wheel_mu.mean(axis=1), *c.terms], axis=1)
+        floats = self._t(floats.astype(np.float32))  # [(N,) len(_FLOAT_INFO)]
         info = {k: floats[..., j:j + 1] for j, k in enumerate(_FLOAT_INFO)}
         ints = self._t(np.stack([c.lap, c.slot], axis=1))
         info["lap"] = ints[..., 0:1]

@@ -28,8 +28,8 @@ from torcsrl.envs import surfaces as _surf
 from torcsrl.envs import tracks as _tracks
 from torcsrl.envs.tracks.procedural import ProceduralSpec
 from torcsrl.envs.rewards import REWARD_TERMS, Reward
-from torcsrl.envs.sensors import (MS_TO_KMH, RANGEFINDER_ANGLES_DEG, RANGE_M, STATE_BOUNDS, STATE_SLOTS, Rangefinder,
-                                  check_sensors)
+from torcsrl.envs.sensors import (MS_TO_KMH, RANGEFINDER_ANGLES_DEG, RANGE_M, STATE_BOUNDS, STATE_SLOTS, TELEMETRY_SLOTS,
+                                  Rangefinder, check_sensors)
 from torcsrl.envs.vehicle import CarFleet, VehicleParams, make_ground
 
 ACTION_MODES = ("combined", "separate")
@@ -39,7 +39,9 @@ SCALAR_LOCATE_MAX_CARS = 8
 #: Distance between the world origins of the tracks of one env [m].
 TRACK_SPACING_M = 10_000.0
 #: Keys of the per-car bookkeeping reported in ``info`` (TORCS names; SI units).
-INFO_KEYS: tuple[str, ...] = ("distFromStart", "distRaced", "lap", "curLapTime", "lastLapTime", "bestLapTime")
+#: ``surfaceMu`` [-] is the mean friction coefficient under the car's four wheels (surface x tyre): privileged
+#: knowledge for teachers (a camera sees the surface, no TORCS sensor does); no observation carries it.
+INFO_KEYS: tuple[str, ...] = ("distFromStart", "distRaced", "lap", "curLapTime", "lastLapTime", "bestLapTime", "surfaceMu")
 TERMINATION_REASONS: tuple[str, ...] = ("", "off_track", "backwards", "no_progress", "flipped")
 
 
@@ -89,7 +91,7 @@ class RaceCore:
         surface: road surface for every track (``None``: each track's own), or a list to draw one
             per episode (domain randomisation).
         num_cars: number of cars N.
-        sensors: observation keys, from ``rangefinder``, ``state``, ``pixels``, ``depth``.
+        sensors: observation keys, from ``rangefinder``, ``state``, ``telemetry``, ``pixels``, ``depth``.
         reward: a reward preset name or term weights (see :mod:`torcsrl.envs.rewards`).
         reward_scale: factor on the summed reward.
         max_steps: episode step limit (truncation) [control steps].
@@ -244,6 +246,8 @@ class RaceCore:
             out["rangefinder"] = (self.rangefinder.n_beams,)
         if "state" in self.sensors:
             out["state"] = (len(STATE_SLOTS),)
+        if "telemetry" in self.sensors:
+            out["telemetry"] = (len(TELEMETRY_SLOTS),)
         if self.camera is not None:
             out.update(self.camera.shapes)
         return {k: out[k] for k in self.sensors}
@@ -521,7 +525,7 @@ class RaceCore:
             on = np.abs(self.track_pos) <= 1.0
             xy = fleet.pos[:, :2] - self.track_origins[self.slot]
             obs["rangefinder"] = self.rangefinder.read(self.slot, xy, fleet.yaw, on)
-        if "state" in self.sensors:
+        if "state" in self.sensors or "telemetry" in self.sensors:
             v = fleet.vel_body * MS_TO_KMH
             st = np.empty((self.n, len(STATE_SLOTS)), dtype=np.float32)
             st[:, 0] = self.angle
@@ -530,7 +534,10 @@ class RaceCore:
             st[:, 5:9] = fleet.wheel_omega
             st[:, 9] = fleet.rpm
             st[:, 10] = fleet.gear
-            obs["state"] = st
+            if "state" in self.sensors:
+                obs["state"] = st
+            if "telemetry" in self.sensors:
+                obs["telemetry"] = np.ascontiguousarray(st[:, 2:])
         if self.camera is not None:
             obs.update(self.camera.render())
         self.obs = obs
@@ -541,6 +548,7 @@ class RaceCore:
         out = {
             "distFromStart": self.s.copy(), "distRaced": self.dist_raced.copy(), "lap": self.lap.copy(),
             "curLapTime": cur, "lastLapTime": self.last_lap_time.copy(), "bestLapTime": self.best_lap_time.copy(),
+            "surfaceMu": self.fleet.wheel_mu.mean(axis=1),
         }
         for k, name in enumerate(REWARD_TERMS):
             out[f"reward_{name}"] = self.terms[k].copy()
@@ -596,6 +604,8 @@ class RaceEnv(gym.Env, EzPickle):
       angle_rad [rad] (car vs track axis), trackPos [-] (0 centre, ±1 edges, > 0 left),
       speedX/Y/Z_kmh [km/h] (car frame: forward, left, up), wheelSpinVel fl/fr/rl/rr [rad/s],
       rpm [1/min], gear [-]. Bounds: angle ±π, rpm [0, 20000], gear [0, 10], the rest ±1000.
+    - ``telemetry``: ``Box((9,), float32)``, the on-board slots of ``state`` (speeds, wheel spin, rpm, gear;
+      :data:`torcsrl.envs.sensors.TELEMETRY_SLOTS`): no angle to the axis or trackPos, which need a map.
     - ``pixels`` ``Box(0, 255, (3, H, W), uint8)`` and ``depth`` ``Box(0, far, (1, H, W), float32)`` [m]
       from the car-mounted camera, when requested.
 
@@ -646,8 +656,8 @@ class RaceEnv(gym.Env, EzPickle):
         for key, shape in self.core.observation_shapes.items():
             if key == "rangefinder":
                 obs_spaces[key] = spaces.Box(-1.0, self.core.rangefinder.range_m, shape, np.float32)
-            elif key == "state":
-                lo, hi = np.array([STATE_BOUNDS[s] for s in STATE_SLOTS], dtype=np.float32).T
+            elif key in ("state", "telemetry"):
+                lo, hi = np.array([STATE_BOUNDS[s] for s in (STATE_SLOTS if key == "state" else TELEMETRY_SLOTS)], dtype=np.float32).T
                 obs_spaces[key] = spaces.Box(lo, hi, dtype=np.float32)
             elif key == "pixels":
                 obs_spaces[key] = spaces.Box(0, 255, shape, np.uint8)
@@ -658,8 +668,9 @@ class RaceEnv(gym.Env, EzPickle):
 
     def _obs(self) -> dict[str, np.ndarray]:
         obs = {k: v[0] for k, v in self.core.obs.items()}
-        if "state" in obs:  # keep the observation inside its (very wide) physical bounds
-            np.clip(obs["state"], self.observation_space["state"].low, self.observation_space["state"].high, out=obs["state"])
+        for k in ("state", "telemetry"):  # keep the observation inside its (very wide) physical bounds
+            if k in obs:
+                np.clip(obs[k], self.observation_space[k].low, self.observation_space[k].high, out=obs[k])
         return obs
 
     def _info(self) -> dict[str, Any]:

@@ -11,6 +11,10 @@ their own, so they never interact with the cars' physics.
 
 **state** ``[S]`` float32, slots :data:`STATE_SLOTS` (TORCS names, units in the suffix).
 
+**telemetry** ``[T]`` float32, slots :data:`TELEMETRY_SLOTS`: the state slots a real car measures on
+board (speeds, wheel spin, rpm, gear) — without ``angle_rad`` and ``trackPos``, which need a map of the
+track. With ``pixels`` it makes the camera-only observation set (``sensors=camera``).
+
 Normalised versions (as the studies fed their networks): divide each key by
 :func:`obs_scale` — rangefinder / 200 m (so [0, 1], −1/200 off track), angle / π, trackPos as is,
 speeds / 300 km/h, wheel spin / 150 rad/s, rpm / 10,000, gear / 6 — which maps a lap at racing
@@ -47,6 +51,8 @@ STATE_SLOTS: tuple[str, ...] = (
     "rpm",                # engine speed [1/min]
     "gear",               # engaged gear [-]
 )
+#: Slots of the "telemetry" observation: what the car measures on board, no map (a subset of STATE_SLOTS, same order).
+TELEMETRY_SLOTS: tuple[str, ...] = STATE_SLOTS[2:]
 #: Divisors that bring each state slot to about [−1, 1].
 STATE_SCALE: dict[str, float] = {
     "angle_rad": np.pi, "trackPos": 1.0, "speedX_kmh": 300.0, "speedY_kmh": 300.0, "speedZ_kmh": 300.0,
@@ -60,7 +66,7 @@ STATE_BOUNDS: dict[str, tuple[float, float]] = {
     "wheelSpinVel_rl": (-1e3, 1e3), "wheelSpinVel_rr": (-1e3, 1e3), "rpm": (0.0, 2e4), "gear": (0.0, 10.0),
 }
 MS_TO_KMH = 3.6
-SENSOR_NAMES: tuple[str, ...] = ("rangefinder", "state", "pixels", "depth")
+SENSOR_NAMES: tuple[str, ...] = ("rangefinder", "state", "telemetry", "pixels", "depth")
 
 
 def check_sensors(sensors) -> tuple[str, ...]:
@@ -77,12 +83,12 @@ def check_sensors(sensors) -> tuple[str, ...]:
 
 
 def obs_scale(key: str, n_beams: int = len(RANGEFINDER_ANGLES_DEG)) -> np.ndarray:
-    """Divisors that normalise observation ``key`` (rangefinder or state)."""
+    """Divisors that normalise observation ``key`` (rangefinder, state or telemetry)."""
     if key == "rangefinder":
         return np.full(n_beams, RANGE_M, dtype=np.float32)
-    if key == "state":
-        return np.array([STATE_SCALE[s] for s in STATE_SLOTS], dtype=np.float32)
-    raise ValueError(f"no scale for {key!r}; scales exist for rangefinder and state")
+    if key in ("state", "telemetry"):
+        return np.array([STATE_SCALE[s] for s in (STATE_SLOTS if key == "state" else TELEMETRY_SLOTS)], dtype=np.float32)
+    raise ValueError(f"no scale for {key!r}; scales exist for rangefinder, state and telemetry")
 
 
 def normalize_transform(keys=("rangefinder", "state"), n_beams: int = len(RANGEFINDER_ANGLES_DEG)):

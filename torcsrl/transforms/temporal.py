@@ -13,7 +13,7 @@ from ._base import Degradation
 
 __all__ = ["Latency", "Hold", "ScanDrop", "FrameDrop"]
 
-_ALL_SENSOR_KEYS = ("rangefinder", "state", "pixels", "depth")
+_ALL_SENSOR_KEYS = ("rangefinder", "state", "telemetry", "pixels", "depth")
 
 
 class Latency(Degradation):
