@@ -1,0 +1,158 @@
+"""Camera drivers: the camera-only observation set, the grip-aware teacher, privileged distillation into a camera
+student (experiment=camera_distill), and the one-line errors when a policy is fed another observation set."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from torcsrl.envs import make_env
+from torcsrl.envs.sensors import STATE_SLOTS, TELEMETRY_SLOTS
+from torcsrl.envs.surfaces import SURFACES
+
+ROOT = Path(__file__).resolve().parents[1]
+CONF = str(ROOT / "conf")
+torch.set_num_threads(1)
+
+
+def _drive(env, steps, act=(0.05, 0.7)):
+    td = env.reset()
+    out = [td]
+    for _ in range(steps):
+        td = env.step(td.set("action", torch.tensor(act)))["next"]
+        out.append(td)
+    return out
+
+
+def test_camera_set_is_pixels_and_telemetry_without_map_quantities():
+    cam = make_env(track="hairpins", sensors=("pixels", "telemetry"), camera={"height": 32, "width": 32}, seed=3)
+    full = make_env(track="hairpins", sensors=("state",), seed=3)
+    try:
+        keys = set(cam.observation_spec.keys()) - {"info"}
+        assert keys == {"pixels", "telemetry"}  # no rangefinder, no state (trackPos, angle to the axis)
+        assert cam.observation_spec["pixels"].dtype == torch.uint8 and tuple(cam.observation_spec["pixels"].shape) == (3, 32, 32)
+        assert TELEMETRY_SLOTS == STATE_SLOTS[2:] and "trackPos" not in TELEMETRY_SLOTS and "angle_rad" not in TELEMETRY_SLOTS
+        a, b = _drive(cam, 40), _drive(full, 40)
+        for x, y in zip(a, b):  # same seed, same actions: telemetry is exactly the on-board slots of state
+            torch.testing.assert_close(x["telemetry"], y["state"][2:], rtol=0, atol=0)
+        assert a[-1]["telemetry"][TELEMETRY_SLOTS.index("speedX_kmh")] > 5.0  # 0.8 s of throttle at 50 Hz
+        assert a[-1]["pixels"].float().std() > 5.0  # a picture, not a blank frame
+    finally:
+        cam.close()
+        full.close()
+
+
+@pytest.mark.parametrize("surface", ["asphalt", "dirt"])
+def test_info_reports_the_friction_under_the_car(surface):
+    env = make_env(track="oval", surface=surface, sensors=("state",), seed=0)
+    try:
+        td = _drive(env, 5, act=(0.0, 0.3))[-1]
+        from torcsrl.envs.vehicle import VehicleParams
+
+        want = SURFACES[surface].mu * VehicleParams.load("default").tyre_mu_scale
+        assert float(td["info", "surfaceMu"]) == pytest.approx(want, rel=1e-6)
+    finally:
+        env.close()
+
+
+def test_grip_aware_teacher_plans_its_braking_with_the_surface():
+    from torcsrl.policies import SensorDriver, load_policy
+
+    blind, grip = SensorDriver(), load_policy("sensor_grip")
+    r = np.full(19, 60.0)  # a bend 60 m ahead, car at 100 km/h on the centreline
+    st = np.zeros(len(STATE_SLOTS))
+    st[STATE_SLOTS.index("speedX_kmh")] = 100.0
+    asphalt, dirt = grip.act(r, st, mu=1.0)[1], grip.act(r, st, mu=0.6)[1]
+    assert dirt == pytest.approx(blind.act(r, st)[1])  # 7.5 x 0.6 = the blind driver's 4.5 m/s^2
+    assert asphalt > dirt  # more grip: brakes less (or later) for the same view
+    from tensordict import TensorDict
+
+    td = TensorDict({"rangefinder": torch.tensor(r, dtype=torch.float32), "state": torch.tensor(st, dtype=torch.float32)}, [])
+    with pytest.raises(ValueError, match="surfaceMu"):
+        grip(td)
+
+
+# ------------------------------------------------------------------ privileged distillation, end to end (tiny)
+@pytest.fixture(scope="module")
+def distilled(tmp_path_factory):
+    from torcsrl.train import train
+
+    out = tmp_path_factory.mktemp("cam") / "run"
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        cfg = compose("train", overrides=["experiment=camera_distill", "env.camera.height=32", "env.camera.width=32",
+                                          "algo.encoder.cnn_kernels=[4,3,3]", "algo.encoder.cnn_strides=[2,2,1]", "algo.batch_size=16",
+                                          "algo.actor_hidden=[32,32]", "demos.frames=120", "algo.bc_steps=10", "demos.dagger_rounds=1",
+                                          "demos.dagger_frames=60", "eval.per_track=false", "eval.env.track=oval", "eval.max_steps=20",
+                                          "env.procedural.pool=2", f"run_dir={out}"])
+    res = train(cfg)
+    return cfg, res, out
+
+
+def test_distillation_trains_a_camera_student_from_a_privileged_teacher(distilled):
+    import json
+
+    from torcsrl.policies import CheckpointPolicy
+    from torcsrl.utils.checkpoint import latest_checkpoint
+
+    cfg, res, out = distilled
+    assert res["updates"] == 20 and res["frames"] == 60
+    meta = json.loads((out / "demos" / "demos.json").read_text())
+    assert meta["teacher"] == "sensor_grip" and meta["frames"] == 120
+    stored = {p.name.split(".")[0] for p in (out / "demos" / "rows").glob("*.memmap")}
+    assert {"pixels", "telemetry", "expert_action"} <= stored and not stored & {"rangefinder", "state"}  # only what the student sees
+    pol = CheckpointPolicy(latest_checkpoint(out / "checkpoints"))
+    assert list(pol.obs_keys) == ["pixels", "telemetry"] and pol.env_overrides["sensors"] == ("pixels", "telemetry")
+    assert pol.obs_shapes["pixels"] == (3, 32, 32) and set(pol.pipeline["scales"]) == {"telemetry"}
+
+
+def test_camera_student_sees_exactly_its_training_observations(distilled):
+    from torcsrl.policies import CheckpointPolicy
+    from torcsrl.train import env_kwargs, make_train_env
+    from torcsrl.utils.checkpoint import latest_checkpoint
+
+    cfg, _, out = distilled
+    pol = CheckpointPolicy(latest_checkpoint(out / "checkpoints"))
+    train_env = make_train_env(cfg)
+    kw = env_kwargs(cfg.env, seed=int(cfg.seed), device="cpu")  # the single training env's seed
+    raw = make_env(**kw)
+    try:
+        a, b = train_env.reset(), raw.reset()
+        for _ in range(4):
+            act = torch.tensor([0.0, 0.5])
+            a = train_env.step(a.set("action", act))["next"]
+            b = raw.step(b.set("action", act))["next"]
+        assert torch.equal(a["pixels"], b["pixels"]) and not torch.equal(a["telemetry"], b["telemetry"])  # telemetry scaled
+        with torch.no_grad():
+            torch.testing.assert_close(pol._act(*(b.get(k) for k in pol.obs_keys)), pol.actor(*(a.get(k) for k in pol.obs_keys)))
+    finally:
+        train_env.close()
+        raw.close()
+
+
+def test_mismatched_observations_fail_in_one_line(distilled):
+    from torcsrl.policies import CheckpointPolicy, PolicyError, load_policy
+    from torcsrl.utils.checkpoint import latest_checkpoint
+
+    _, _, out = distilled
+    cam = CheckpointPolicy(latest_checkpoint(out / "checkpoints"))
+    envs = {"rangefinder": make_env(track="oval", sensors=("rangefinder", "state")),
+            "big": make_env(track="oval", sensors=("pixels", "telemetry"), camera={"height": 48, "width": 48}),
+            "camera": make_env(track="oval", sensors=("pixels", "telemetry"), camera={"height": 32, "width": 32})}
+    try:
+        with pytest.raises(PolicyError, match=r"pixels.*3x32x32") as err:  # camera policy on an env without pixels
+            cam.check_env(envs["rangefinder"])
+        assert "\n" not in str(err.value) and "telemetry:9" in str(err.value)
+        with pytest.raises(PolicyError, match=r"\(3, 32, 32\).*\(3, 48, 48\)") as err:  # another resolution
+            cam.check_env(envs["big"])
+        assert "\n" not in str(err.value)
+        cam.check_env(envs["camera"])  # the right one passes
+        with pytest.raises(PolicyError, match="rangefinder") as err:  # a rangefinder policy on a camera-only env
+            load_policy("reference").check_env(envs["camera"])
+        assert "\n" not in str(err.value)
+    finally:
+        for e in envs.values():
+            e.close()
