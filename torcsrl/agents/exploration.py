@@ -221,10 +221,10 @@ class DeviceActorModule(TensorDictModule):
 
     def __init__(self, module: nn.Module, in_keys, out_keys, device: torch.device):
         super().__init__(module, in_keys=in_keys, out_keys=out_keys)
-        self.device = torch.device(device)
+        self.actor_device = torch.device(device)
 
     def forward(self, tensordict: TensorDictBase, *args, **kwargs) -> TensorDictBase:
-        obs = [tensordict.get(k).to(self.device, non_blocking=True) for k in self.in_keys]
+        obs = [tensordict.get(k).to(self.actor_device, non_blocking=True) for k in self.in_keys]
         tensordict.set(self.out_keys[0], self.module(*obs).to("cpu"))
         return tensordict
 
