@@ -56,6 +56,7 @@ RANGES: dict[str, tuple[float | None, float | None, str]] = {
     "algo.n_steps": (1, None, "closed"),
     "algo.num_atoms": (2, None, "closed"),
     "learner.utd_ratio": (0.0, None, "open"),
+    "learner.critic_warmup_updates": (0, None, "closed"),
     "buffer.size": (1, None, "closed"),
     "collector.frames_per_batch": (1, None, "closed"),
     "collector.num_workers": (0, None, "closed"),
@@ -141,6 +142,11 @@ def problems(cfg: DictConfig | Mapping) -> list[str]:
     _check_budget(c, out)
     if "device" in c:
         _check_device(c["device"], out)
+        workers = (c.get("collector") or {}).get("num_workers") if isinstance(c.get("collector"), Mapping) else 0
+        if str(c["device"]) != "cpu" and _is_num(workers) and workers > 0:
+            out.append(f"device: {c['device']!r} with collector.num_workers={workers}: the env processes act on the CPU copy of the "
+                       "actor only in-process; allowed: collector.num_workers=0 with a GPU device, or device=cpu")
+    _check_critic_obs_keys(c, out)
     demos = c.get("demos")
     if isinstance(demos, Mapping) and "teacher" in demos:
         from torcsrl.demos import TEACHERS
@@ -358,25 +364,49 @@ def _check_algo(algo: Any, out: list[str]) -> None:
 
 
 def _check_device(device: Any, out: list[str]) -> None:
-    """``device`` must name a torch device this machine has; the loop (envs, collector, replay buffer and
-    updates) runs on the CPU, so ``cpu`` is the only device it accepts today."""
+    """``device`` must name a torch device this machine has, where the networks, losses and sampled batches go: ``cpu``,
+    or ``cuda`` / ``cuda:<i>`` where ``torch.cuda.is_available()`` (envs, collector and replay buffer stay on the CPU)."""
     import torch
 
+    allowed = "cpu, cuda, cuda:<i>" if torch.cuda.is_available() else "cpu (cuda where torch.cuda.is_available())"
     try:
         dev = torch.device(str(device))
     except (RuntimeError, ValueError):
-        out.append(f"device: {device!r} is not a torch device; allowed: cpu")
+        out.append(f"device: {device!r} is not a torch device; allowed: {allowed}")
         return
     if dev.type == "cpu":
         return
-    backend = getattr(torch, dev.type, None)
-    available = bool(getattr(backend, "is_available", lambda: False)())
-    if not available:
+    if dev.type != "cuda":
+        out.append(f"device: {str(device)!r}: the training loop places its networks on cpu or cuda only; allowed: {allowed}")
+        return
+    if not torch.cuda.is_available():
         out.append(f"device: {str(device)!r} is not available on this machine (torch {torch.__version__}: "
-                   f"torch.{dev.type}.is_available() is False); allowed: cpu")
-    else:
-        out.append(f"device: {str(device)!r}: training runs on the CPU only (envs, collector, replay buffer and updates "
-                   "are CPU-side; a GPU is used only for EGL rendering); allowed: cpu")
+                   f"torch.cuda.is_available() is False); allowed: {allowed}")
+    elif dev.index is not None and dev.index >= torch.cuda.device_count():
+        out.append(f"device: {str(device)!r}: this machine has {torch.cuda.device_count()} CUDA device(s); allowed: {allowed}")
+
+
+def _check_critic_obs_keys(c: Mapping, out: list[str]) -> None:
+    """``critic_obs_keys`` (asymmetric actor-critic): null, or sensor names, for the RL algorithms without demonstrations."""
+    keys = c.get("critic_obs_keys")
+    if keys is None:
+        return
+    from torcsrl.agents import IMITATION
+    from torcsrl.envs.sensors import SENSOR_NAMES
+
+    if not isinstance(keys, list) or not keys or not all(isinstance(k, str) for k in keys):
+        out.append(f"critic_obs_keys: expected a non-empty list of sensors or null, got {keys!r}; allowed sensors: {', '.join(SENSOR_NAMES)}")
+        return
+    bad = [k for k in keys if k not in SENSOR_NAMES]
+    if bad:
+        out.append(f"critic_obs_keys: unknown sensor(s) {bad}; allowed: {', '.join(SENSOR_NAMES)}")
+    algo = (c.get("algo") or {}).get("name") if isinstance(c.get("algo"), Mapping) else None
+    if algo in IMITATION:
+        out.append(f"critic_obs_keys: algo={algo} has no critic; allowed: null, or an actor-critic algo (ddpg, td3, d4pg)")
+    demos = c.get("demos") if isinstance(c.get("demos"), Mapping) else {}
+    if algo not in IMITATION and (demos.get("path") or (_is_num(demos.get("frames")) and demos.get("frames") > 0)):
+        out.append("critic_obs_keys: demonstrations hold the actor's observations only (no critic keys); allowed: demos.frames=0 "
+                   "and demos.path=null with critic_obs_keys (start the actor from a distilled student with init.actor=...)")
 
 
 def _check_budget(c: Mapping, out: list[str]) -> None:

@@ -36,6 +36,7 @@ def _mixed_sample(buffers: list, batch_size: int):
 def train(cfg: DictConfig) -> dict[str, Any]:
     from torcsrl import agents
     from torcsrl.agents._build import bc_step
+    from torcsrl.agents.exploration import DeviceActorModule
     from torcsrl.agents.networks import split_obs_keys
     from torcsrl.demos import EXTRA_KEYS, label_rollouts, make_demo_env
     from torcsrl.objectives.common import ObsUnpacker
@@ -58,8 +59,9 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     t_start = time.perf_counter()
     eval_envs: dict = {}
     loggers: list = []
+    device = torch.device(str(cfg.device))  # the actor and its batches (device=cuda); envs and buffers stay on the CPU
     try:
-        actor = agent.make_actor(cfg.algo, env, obs_keys)
+        actor = agent.make_actor(cfg.algo, env, obs_keys).to(device)
         optim = agent.make_optimizers(cfg.algo, actor)
         demos = make_demos(cfg, env, run_dir)
         if demos is None:
@@ -69,7 +71,9 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         loggers = make_loggers(cfg.logger.backends, run_dir, cfg.logger.exp_name, cfg.logger.wandb_project, cfg.logger.wandb_mode)
         _, img = split_obs_keys(env.observation_spec, obs_keys)
         net = SimpleNamespace(actor_network=actor, obs=ObsUnpacker(obs_keys, img, int(cfg.algo.encoder.augment_shift)))
-        policy = TensorDictModule(actor, in_keys=obs_keys, out_keys=["action"])
+        policy = TensorDictModule(actor, in_keys=obs_keys, out_keys=["action"]) if device.type == "cpu" else \
+            DeviceActorModule(actor, obs_keys, ["action"], device)
+        learner = actor if device.type == "cpu" else (lambda *obs: actor(*(o.to(device) for o in obs)).cpu())
         buffers = [demos]
         rounds = int(cfg.demos.dagger_rounds) if algo == "dagger" else 0
         steps_per_fit, batch_size, precision = int(cfg.algo.bc_steps), int(cfg.algo.batch_size), str(cfg.algo.precision)
@@ -83,7 +87,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
                 denv = make_demo_env(cfg, int(cfg.seed) + 31 * rnd)
                 try:
                     actor.eval()
-                    stats = label_rollouts(denv, int(cfg.demos.dagger_frames), agg, sigma_max=float(cfg.demos.sigma_max), learner=actor,
+                    stats = label_rollouts(denv, int(cfg.demos.dagger_frames), agg, sigma_max=float(cfg.demos.sigma_max), learner=learner,
                                            beta=beta, seed=int(cfg.seed) + 31 * rnd, obs_keys=obs_keys, teacher=str(cfg.demos.teacher))
                     actor.train()
                 finally:
@@ -94,7 +98,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
                                       "train/terminated": stats["terminated"]}, updates)
             t0 = time.perf_counter()
             for i in range(steps_per_fit):
-                bc, smooth = bc_step(net, optim, _mixed_sample(buffers, batch_size), precision, cfg.algo)
+                bc, smooth = bc_step(net, optim, _mixed_sample(buffers, batch_size).to(device), precision, cfg.algo)
                 updates += 1
                 if updates % int(cfg.logger.every_frames) == 0:
                     log_metrics(loggers, {"loss/bc": float(bc), **{k: float(v) for k, v in smooth.items()}, "time/updates_per_s": (i + 1) / (time.perf_counter() - t0),

@@ -101,11 +101,15 @@ def build_base_env(name: str, kwargs: dict) -> EnvBase:
 
 
 def make_train_env(cfg: DictConfig, worker: int = -1) -> EnvBase:
-    """The training env of worker ``worker`` (-1: the in-process collector): the observation transforms,
+    """The training env of worker ``worker`` (-1: the in-process collector), with the sensors of ``env.sensors`` and of
+    ``critic_obs_keys`` (asymmetric actor-critic; validation envs have ``env.sensors`` only): the observation transforms,
     and for the worker processes of TorchRL's MultiSyncCollector InitTracker + RewardSum (the in-process
     :class:`StepCollector` keeps those two entries itself, cheaper). Without any transform, the base env
     itself (an empty ``TransformedEnv`` still clones every step's input: ~0.1 ms)."""
     override: dict = {"seed": int(cfg.seed) + 1000 * (worker + 1), "device": "cpu"}
+    extra = [k for k in (critic_obs_keys(cfg) or []) if k not in cfg.env.sensors]
+    if extra:  # asymmetric actor-critic: the env also produces what only the critic sees
+        override["sensors"] = (*cfg.env.sensors, *extra)
     tracks = cfg.collector.worker_tracks
     if tracks:
         override["track"] = tracks[max(worker, 0) % len(tracks)]
@@ -229,11 +233,26 @@ def streams(cfg: DictConfig) -> int:
     return max(1, int(cfg.env.get("num_cars", 1) or 1)) * max(1, int(cfg.collector.num_workers))
 
 
+def critic_obs_keys(cfg: DictConfig) -> list[str] | None:
+    """What the critic sees when it is not what the actor sees (``critic_obs_keys``: asymmetric actor-critic), else None."""
+    keys = cfg.get("critic_obs_keys")
+    if not keys:
+        return None
+    keys = list(keys)
+    return None if keys == list(cfg.obs_keys or cfg.env.sensors) else keys
+
+
+def stored_keys(cfg: DictConfig) -> list[str]:
+    """The observation keys a transition keeps: the actor's, then the critic's own (asymmetric actor-critic)."""
+    keys = list(cfg.obs_keys or cfg.env.sensors)
+    return keys + [k for k in (critic_obs_keys(cfg) or []) if k not in keys]
+
+
 def make_buffer(cfg: DictConfig, run_dir: Path) -> ReplayBuffer:
-    """Replay ring (``torcsrl/utils/replay.py``): every observation stored once, n-step returns formed
-    when sampling, RAM or memory-mapped disk storage, optionally prioritized."""
+    """Replay ring (``torcsrl/utils/replay.py``): every observation stored once (the actor's and the critic's keys,
+    :func:`stored_keys`), n-step returns formed when sampling, RAM or memory-mapped disk storage, optionally prioritized."""
     b = cfg.buffer
-    return ReplayBuffer(int(b.size), int(cfg.algo.batch_size), list(cfg.obs_keys or cfg.env.sensors), streams=streams(cfg),
+    return ReplayBuffer(int(b.size), int(cfg.algo.batch_size), stored_keys(cfg), streams=streams(cfg),
                         n_steps=int(cfg.algo.n_steps), gamma=float(cfg.algo.gamma), storage=str(b.storage),
                         path=b.path or Path(run_dir) / "buffer", prioritized=bool(b.prioritized), alpha=float(b.alpha), beta=float(b.beta))
 
@@ -267,19 +286,77 @@ def sample_batch(buffer: ReplayBuffer, demos: ReplayBuffer | None, n_demo: int):
     return torch.cat([on, demos.sample(n_demo)], 0)
 
 
-def pretrain(agent, hot, loss, optim, target_updater, demos: ReplayBuffer, bc_steps: int, critic_steps: int, precision: str) -> dict:
+def pretrain(agent, hot, loss, optim, target_updater, demos: ReplayBuffer, bc_steps: int, critic_steps: int, precision: str,
+             device: torch.device = torch.device("cpu")) -> dict:
     """Behaviour-clone the actor on the demonstrations, then fit the critic to it (actor frozen), targets synced."""
     from torcsrl.agents._build import bc_step
 
     out = {}
     for _ in range(int(bc_steps)):
-        out["loss/bc"], _ = bc_step(loss, optim, demos.sample(), precision)
+        out["loss/bc"], _ = bc_step(loss, optim, demos.sample().to(device), precision)
     with torch.no_grad():  # targets start as the pre-trained actor
         for tgt, src in zip(*target_updater._lists):
             tgt.copy_(src)
     for i in range(int(critic_steps)):
-        out.update(agent.update(hot, loss, optim, target_updater, demos.sample(), i, actor=False))
+        out.update(agent.update(hot, loss, optim, target_updater, demos.sample().to(device), i, actor=False))
     return out
+
+
+def make_networks(cfg: DictConfig, agent, env: EnvBase, obs_keys: list[str], device: torch.device):
+    """(actor, critic, loss) on ``device`` (``cfg.device``): the actor on ``obs_keys`` (started from ``init.actor``
+    when set), the critic on :func:`critic_obs_keys` (the actor's when null), the loss over both. Built on the CPU and
+    moved before the loss is made, so the loss's target copies are made on ``device`` too."""
+    ckeys = critic_obs_keys(cfg)
+    actor = agent.make_actor(cfg.algo, env, obs_keys)
+    init = cfg.get("init")
+    if init is not None and init.get("actor"):
+        init_actor(str(init.actor), actor, cfg, env, obs_keys)
+    critic = agent.make_critic(cfg.algo, env, ckeys or obs_keys)
+    actor.to(device)
+    critic.to(device)
+    loss = agent.make_loss(cfg.algo, actor, critic, env, obs_keys, ckeys).to(device)
+    return actor, critic, loss
+
+
+def init_actor(spec: str, actor: torch.nn.Module, cfg: DictConfig, env: EnvBase, obs_keys: list[str]) -> Path:
+    """Load the actor weights of the checkpoint ``spec`` (a training checkpoint, a policy file, or a run folder: its
+    newest checkpoint) into ``actor``: e.g. an asymmetric TD3 actor started from the distilled camera student.
+
+    ValueError (one line) unless the checkpoint's actor saw this run's observation layout, with the same scaling, and
+    acted with the same action size, and its network has this actor's shape."""
+    path = Path(spec)
+    if path.is_dir():
+        found = latest_checkpoint(path / "checkpoints") or latest_checkpoint(path)
+        if found is None:
+            raise ValueError(f"init.actor={spec}: the folder holds no checkpoint (nor checkpoints/ckpt_*.pt); allowed: a checkpoint "
+                             "file, a policy file, or a run folder with checkpoints")
+        path = found
+    elif not path.is_file():
+        raise ValueError(f"init.actor={spec}: no such file or folder; allowed: a checkpoint file, a policy file, or a run folder")
+    ck = load_checkpoint(path)
+    meta, want = ck["meta"], expected_meta(cfg, env, obs_keys)
+    if meta.get("obs_layout") != want["obs_layout"] or meta.get("action_dim") != want["action_dim"]:
+        raise ValueError(f"init.actor={path}: its actor sees {meta.get('obs_layout')!r} with {meta.get('action_dim')} action dims; "
+                         f"this run's actor sees {want['obs_layout']!r} with {want['action_dim']}; allowed: a checkpoint of the "
+                         "same observation set (obs_keys / env.sensors, camera size) and action size")
+    rec = meta.get("pipeline")
+    mine = pipeline_record(cfg, env)["scales"]
+    if rec is not None and dict(rec.get("scales") or {}) != mine:
+        raise ValueError(f"init.actor={path}: its observations were scaled for {sorted(rec.get('scales') or {})}, this run's for "
+                         f"{sorted(mine)}; allowed: a checkpoint trained with the same env.normalize")
+    if "actor" in ck:
+        sd = ck["actor"]
+    else:
+        prefix = "actor_network_params."
+        sd = {k[len(prefix):]: v for k, v in (ck.get("loss") or {}).items() if k.startswith(prefix)}
+    try:
+        actor.load_state_dict(sd, strict=True)
+    except RuntimeError as err:
+        first = [ln.strip() for ln in str(err).strip().splitlines() if ln.strip()]
+        raise ValueError(f"init.actor={path}: its actor network differs from this run's ({first[1] if len(first) > 1 else first[0]}); "
+                         "allowed: the same algo.actor_hidden and algo.encoder as the checkpoint's config") from None
+    print(f"[torcsrl] actor initialised from {path}", file=sys.stderr)
+    return path
 
 
 def make_collector(cfg: DictConfig, env: EnvBase, policy) -> StepCollector | MultiSyncCollector:
@@ -397,10 +474,16 @@ def _set_sim_state(env: EnvBase, state: dict | None) -> None:
 
 
 def expected_meta(cfg: DictConfig, env: EnvBase, obs_keys: list[str]) -> dict:
-    """What a checkpoint must have been written for: algorithm, observation layout, action size."""
+    """What a checkpoint must have been written for: algorithm, observation layout (the actor's), action size."""
+    return {"algo": cfg.algo.name, "obs_layout": _layout(env, obs_keys), "action_dim": int(env.action_spec.shape[-1])}
+
+
+def _layout(env: EnvBase, keys: list[str] | None) -> str | None:
+    """``key:shape,...`` of ``keys`` in ``env`` (None for None)."""
+    if keys is None:
+        return None
     nb = len(env.batch_size)
-    layout = ",".join(f"{k}:{'x'.join(str(d) for d in env.observation_spec[k].shape[nb:])}" for k in obs_keys)
-    return {"algo": cfg.algo.name, "obs_layout": layout, "action_dim": int(env.action_spec.shape[-1])}
+    return ",".join(f"{k}:{'x'.join(str(d) for d in env.observation_spec[k].shape[nb:])}" for k in keys)
 
 
 # ---------------------------------------------------------------------------------------
@@ -458,11 +541,11 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     agent = agents.get(cfg.algo.name)
     obs_keys = list(cfg.obs_keys or cfg.env.sensors)
     total = int(cfg.total_frames)
+    device = torch.device(str(cfg.device))  # networks, losses, sampled batches; envs, collector and buffer stay on the CPU
+    on_device = device.type != "cpu"
 
     env = make_train_env(cfg)
-    actor = agent.make_actor(cfg.algo, env, obs_keys)
-    critic = agent.make_critic(cfg.algo, env, obs_keys)
-    loss = agent.make_loss(cfg.algo, actor, critic, env, obs_keys)
+    actor, critic, loss = make_networks(cfg, agent, env, obs_keys, device)
     target_updater = agent.make_target_updater(cfg.algo, loss)
     policy = agent.make_exploration(cfg.algo, actor, env, obs_keys)
     optim = agent.make_optimizers(cfg.algo, loss)
@@ -470,7 +553,7 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     demos = make_demos(cfg, env, run_dir)
     collector = make_collector(cfg, env, policy)
     eval_envs = make_eval_envs(cfg)
-    meta = expected_meta(cfg, env, obs_keys)
+    meta = {**expected_meta(cfg, env, obs_keys), "critic_obs_layout": _layout(env, critic_obs_keys(cfg))}
     counters = Counters(next_eval=int(cfg.eval.every_episodes), next_ckpt=int(cfg.checkpoint.every_frames) or total,
                         next_log=int(cfg.logger.every_frames))
     if cfg.buffer.load:
@@ -485,12 +568,13 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     # plain values for the hot loop (an OmegaConf lookup costs ~10 us)
     hot = plain(cfg.algo)
     warmup, batch_size, utd = int(cfg.learner.warmup_frames), int(cfg.algo.batch_size), float(cfg.learner.utd_ratio)
+    critic_warmup = int(cfg.learner.get("critic_warmup_updates", 0) or 0)
     n_demo = int(round(batch_size * float(cfg.demos.ratio))) if demos is not None else 0
     last: dict[str, Any] = {}
     hot.n_demo, hot.bc_weight = n_demo, float(cfg.demos.bc_weight) if demos is not None else 0.0
     if demos is not None and not counters.pretrained:
         last = pretrain(agent, hot, loss, optim, target_updater, demos, int(cfg.demos.pretrain_steps), int(cfg.demos.critic_pretrain_steps),
-                        str(cfg.algo.precision))
+                        str(cfg.algo.precision), device)
         counters.pretrained = True
     prioritized = bool(cfg.buffer.prioritized)
     eval_metrics: dict[str, float] = {}
@@ -522,7 +606,13 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
                 counters.owed_updates += utd * data.numel()
                 for _ in range(int(counters.owed_updates)):
                     batch = sample_batch(buffer, demos, n_demo)
-                    last = agent.update(hot, loss, optim, target_updater, batch, counters.updates)
+                    if on_device:
+                        batch = batch.to(device, non_blocking=True)
+                    if counters.updates >= critic_warmup:
+                        last = agent.update(hot, loss, optim, target_updater, batch, counters.updates)
+                    else:  # the critic learns the (initialised) actor's values first
+                        last = agent.update(hot, loss, optim, target_updater, batch, counters.updates, actor=False)
+                        target_updater.step()
                     if prioritized:
                         buffer.update_tensordict_priority(batch)
                     counters.updates += 1

@@ -1,5 +1,6 @@
 """Defect 5: ``device`` is checked before any work: a name torch does not know, a device this machine lacks,
-or one the training loop does not run on, fails with one line naming what is allowed."""
+or one the training loop does not place networks on, fails with one line naming what is allowed.
+(Where the networks go when it is accepted: tests/test_train_device.py.)"""
 
 from __future__ import annotations
 
@@ -26,9 +27,20 @@ def test_cuda_on_a_cpu_only_torch_is_refused_before_training(tmp_path):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA here")
-def test_cuda_where_it_exists_is_refused_too(tmp_path):
-    with pytest.raises(ConfigError, match=r"training runs on the CPU only.*allowed: cpu"):
-        validate(cfg_for("device=cuda"))
+def test_cuda_where_it_exists_is_accepted():
+    validate(cfg_for("device=cuda"))
+
+
+def test_devices_the_loop_does_not_place_on_are_refused():
+    with pytest.raises(ConfigError, match=r"device: 'meta': the training loop places its networks on cpu or cuda only; allowed: cpu") as e:
+        validate(cfg_for("device=meta"))
+    assert "\n" not in str(e.value)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA here")
+def test_gpu_with_worker_processes_is_refused():
+    with pytest.raises(ConfigError, match=r"collector.num_workers=2.*allowed: collector.num_workers=0 with a GPU device"):
+        validate(cfg_for("device=cuda", "collector.num_workers=2"))
 
 
 def test_cpu_is_accepted():

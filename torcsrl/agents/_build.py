@@ -14,7 +14,7 @@ from tensordict.nn import TensorDictModule
 from torchrl.envs import EnvBase
 from torchrl.objectives import LossModule, SoftUpdate
 
-from torcsrl.agents.exploration import ActionNoise, BehaviourPolicy, ParamNoiseActor, StochasticBrake
+from torcsrl.agents.exploration import ActionNoise, BehaviourPolicy, DeviceActorModule, ParamNoiseActor, StochasticBrake
 from torcsrl.agents.networks import Critic, DeterministicActor, ObsEncoder, split_obs_keys
 
 
@@ -43,11 +43,17 @@ def critic(cfg: Any, env: EnvBase, obs_keys: list[str], num_nets: int, out_dim: 
     return Critic(encoder(cfg, env, obs_keys), low.numel(), tuple(cfg.critic_hidden), num_nets=num_nets, out_dim=out_dim)
 
 
-def loss_kwargs(cfg: Any, env: EnvBase, obs_keys: list[str]) -> dict:
+def loss_kwargs(cfg: Any, env: EnvBase, obs_keys: list[str], critic_obs_keys: list[str] | None = None) -> dict:
+    """Keyword arguments shared by the losses; ``critic_obs_keys``: what the critic sees when it is not what the actor
+    sees (asymmetric actor-critic; ``None`` or the same list: shared)."""
     low, high = action_bounds(env)
     _, img = split_obs_keys(env.observation_spec, obs_keys)
-    return dict(obs_keys=list(obs_keys), image_keys=img, action_low=low, action_high=high, gamma=float(cfg.gamma),
-                augment_shift=int(cfg.encoder.augment_shift))
+    out = dict(obs_keys=list(obs_keys), image_keys=img, action_low=low, action_high=high, gamma=float(cfg.gamma),
+               augment_shift=int(cfg.encoder.augment_shift))
+    if critic_obs_keys is not None and list(critic_obs_keys) != list(obs_keys):
+        _, cimg = split_obs_keys(env.observation_spec, critic_obs_keys)
+        out.update(critic_obs_keys=list(critic_obs_keys), critic_image_keys=cimg)
+    return out
 
 
 def value_support(cfg: Any) -> tuple[float, float]:
@@ -83,14 +89,17 @@ def target_updater(cfg: Any, loss: LossModule) -> SoftUpdate:
 
 
 def exploration(cfg: Any, actor_net: DeterministicActor, env: EnvBase, obs_keys: list[str]) -> BehaviourPolicy:
-    """The behaviour policy: actor -> noise (-> stochastic brake). Deterministic under DETERMINISTIC exploration."""
+    """The behaviour policy: actor -> noise (-> stochastic brake). Deterministic under DETERMINISTIC exploration.
+    It reads and writes CPU tensors (the envs' device) wherever the actor lives (:class:`DeviceActorModule`)."""
     e = cfg.exploration
     low, high = action_bounds(env)
     if e.kind == "param":
         mods = [ParamNoiseActor(actor_net, obs_keys, sigma=float(e.param_sigma), target_distance=float(e.param_target_distance),
                                 resample_frames=int(e.param_resample_frames))]
     else:
-        mods = [TensorDictModule(actor_net, in_keys=list(obs_keys), out_keys=["action"])]
+        device = next(actor_net.parameters()).device
+        mods = [TensorDictModule(actor_net, in_keys=list(obs_keys), out_keys=["action"]) if device.type == "cpu" else
+                DeviceActorModule(actor_net, list(obs_keys), ["action"], device)]
         if e.kind in ("ou", "gaussian"):
             mods.append(ActionNoise(e.kind, low, high, sigma=list_or_float(e.sigma), theta=list_or_float(e.theta), mu=list_or_float(e.mu),
                                     dt=float(e.dt), clip=None if e.clip is None else float(e.clip), anneal_frames=int(e.anneal_frames),

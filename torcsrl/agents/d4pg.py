@@ -25,14 +25,14 @@ def make_actor(cfg: Any, env: EnvBase, obs_keys: list[str]):
 
 
 def make_critic(cfg: Any, env: EnvBase, obs_keys: list[str]):
-    """Z(s, a): logits over ``num_atoms`` returns."""
+    """Z(s, a): logits over ``num_atoms`` returns (``obs_keys``: what it sees, ``critic_obs_keys``)."""
     return _build.critic(cfg, env, obs_keys, num_nets=1, out_dim=int(cfg.num_atoms))
 
 
-def make_loss(cfg: Any, actor, critic, env: EnvBase, obs_keys: list[str]):
+def make_loss(cfg: Any, actor, critic, env: EnvBase, obs_keys: list[str], critic_obs_keys: list[str] | None = None):
     """Cross-entropy to the C51-projected target distribution; actor ascends the expected return."""
     v_min, v_max = _build.value_support(cfg)
-    return D4PGLoss(actor, critic, v_min=v_min, v_max=v_max, **_build.loss_kwargs(cfg, env, obs_keys))
+    return D4PGLoss(actor, critic, v_min=v_min, v_max=v_max, **_build.loss_kwargs(cfg, env, obs_keys, critic_obs_keys))
 
 
 def make_target_updater(cfg: Any, loss):

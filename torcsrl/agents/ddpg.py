@@ -23,13 +23,13 @@ def make_actor(cfg: Any, env: EnvBase, obs_keys: list[str]):
 
 
 def make_critic(cfg: Any, env: EnvBase, obs_keys: list[str]):
-    """Q(s, a): one critic."""
+    """Q(s, a): one critic (``obs_keys``: what it sees, ``critic_obs_keys``)."""
     return _build.critic(cfg, env, obs_keys, num_nets=1, out_dim=1)
 
 
-def make_loss(cfg: Any, actor, critic, env: EnvBase, obs_keys: list[str]):
+def make_loss(cfg: Any, actor, critic, env: EnvBase, obs_keys: list[str], critic_obs_keys: list[str] | None = None):
     """DDPG loss: y = r + gamma (1 - terminated) Q'(s', mu'(s'))."""
-    return DDPGLoss(actor, critic, loss_function=cfg.loss_function, **_build.loss_kwargs(cfg, env, obs_keys))
+    return DDPGLoss(actor, critic, loss_function=cfg.loss_function, **_build.loss_kwargs(cfg, env, obs_keys, critic_obs_keys))
 
 
 def make_target_updater(cfg: Any, loss):

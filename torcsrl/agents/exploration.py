@@ -22,6 +22,8 @@ training loop seeds and checkpoints; per-episode state lives in the collector's 
   perturbed copy of the actor (Gaussian weight noise of std ``sigma``, resampled every
   ``resample_frames`` frames) and adapts ``sigma`` so the action-space distance between the
   perturbed and clean policies stays near ``target_distance``.
+* :class:`DeviceActorModule` — the actor's ``TensorDictModule`` when the actor lives on another device
+  than the env (``device=cuda``): observations go to the actor's device, the action comes back to the CPU.
 """
 
 from __future__ import annotations
@@ -182,6 +184,7 @@ class ParamNoiseActor(TensorDictModuleBase):
         self.register_buffer("sigma", torch.tensor(float(sigma)))
         self.register_buffer("frames", torch.zeros((), dtype=torch.long))
         self.register_buffer("last_resample", torch.full((), -1, dtype=torch.long))
+        self._device = next(actor.parameters()).device  # the actor's (device=cuda: observations go there, actions come back)
 
     @torch.no_grad()
     def _resample(self) -> None:
@@ -192,8 +195,11 @@ class ParamNoiseActor(TensorDictModuleBase):
 
     def forward(self, td: TensorDictBase) -> TensorDictBase:
         obs = [td.get(k) for k in self.in_keys]
+        on_cpu = self._device.type == "cpu"
+        if not on_cpu:
+            obs = [o.to(self._device, non_blocking=True) for o in obs]
         if not _exploring():
-            td.set(self.action_key, self.actor(*obs))
+            td.set(self.action_key, self.actor(*obs) if on_cpu else self.actor(*obs).to("cpu"))
             return td
         with torch.no_grad():
             if int(self.last_resample) < 0 or int(self.frames - self.last_resample) >= self.resample_frames:
@@ -203,9 +209,24 @@ class ParamNoiseActor(TensorDictModuleBase):
             a = self.actor(*obs)
             dist = (a_p - a).pow(2).mean().sqrt()
             self.sigma.mul_(self.adapt if dist < self.target_distance else 1.0 / self.adapt)
-        td.set(self.action_key, a_p)
+        td.set(self.action_key, a_p if on_cpu else a_p.to("cpu"))
         self.frames += max(1, a.numel() // a.shape[-1])
         return td
+
+
+class DeviceActorModule(TensorDictModule):
+    """``TensorDictModule(actor, in_keys, out_keys)`` for an actor on ``device`` driving CPU envs: reads the
+    observations, moves them to ``device``, writes the action back on the CPU. Same state-dict keys as the
+    plain module (the CPU path uses the plain one: no copy per step there)."""
+
+    def __init__(self, module: nn.Module, in_keys, out_keys, device: torch.device):
+        super().__init__(module, in_keys=in_keys, out_keys=out_keys)
+        self.actor_device = torch.device(device)
+
+    def forward(self, tensordict: TensorDictBase, *args, **kwargs) -> TensorDictBase:
+        obs = [tensordict.get(k).to(self.actor_device, non_blocking=True) for k in self.in_keys]
+        tensordict.set(self.out_keys[0], self.module(*obs).to("cpu"))
+        return tensordict
 
 
 class BehaviourPolicy(TensorDictSequential):

@@ -24,14 +24,14 @@ def make_actor(cfg: Any, env: EnvBase, obs_keys: list[str]):
 
 
 def make_critic(cfg: Any, env: EnvBase, obs_keys: list[str]):
-    """Q1, Q2 (s, a): twin critics as one fused ensemble."""
+    """Q1, Q2 (s, a): twin critics as one fused ensemble (``obs_keys``: what the critics see, ``critic_obs_keys``)."""
     return _build.critic(cfg, env, obs_keys, num_nets=2, out_dim=1)
 
 
-def make_loss(cfg: Any, actor, critic, env: EnvBase, obs_keys: list[str]):
+def make_loss(cfg: Any, actor, critic, env: EnvBase, obs_keys: list[str], critic_obs_keys: list[str] | None = None):
     """TD3 loss: y = r + gamma (1 - terminated) min_i Q'_i(s', clip(mu'(s') + clip(eps, -c, c)))."""
     return TD3Loss(actor, critic, loss_function=cfg.loss_function, policy_noise=float(cfg.policy_noise),
-                   noise_clip=float(cfg.noise_clip), **_build.loss_kwargs(cfg, env, obs_keys))
+                   noise_clip=float(cfg.noise_clip), **_build.loss_kwargs(cfg, env, obs_keys, critic_obs_keys))
 
 
 def make_target_updater(cfg: Any, loss):

@@ -70,7 +70,8 @@ class D4PGLoss(LossModule):
         qvalue_network: a one-member :class:`~torcsrl.agents.networks.Critic` with ``out_dim = num_atoms``.
 
     Keyword Args:
-        obs_keys, image_keys, action_low, action_high, gamma, augment_shift, use_prioritized_weights:
+        obs_keys, image_keys, action_low, action_high, gamma, augment_shift, critic_obs_keys, critic_image_keys,
+        use_prioritized_weights:
             as in :class:`~torcsrl.objectives.td3.TD3Loss`.
         v_min, v_max: support of the return distribution [return units].
     """
@@ -112,6 +113,8 @@ class D4PGLoss(LossModule):
         v_max: float,
         gamma: float = 0.99,
         augment_shift: int = 0,
+        critic_obs_keys: list[str] | None = None,
+        critic_image_keys: list[str] = (),
         use_prioritized_weights: str | bool = "auto",
     ) -> None:
         super().__init__()
@@ -130,13 +133,14 @@ class D4PGLoss(LossModule):
         self.register_buffer("min_action", torch.as_tensor(action_low, dtype=torch.float32).clone())
         self.register_buffer("max_action", torch.as_tensor(action_high, dtype=torch.float32).clone())
         self.obs = ObsUnpacker(obs_keys, list(image_keys), augment_shift)
+        self.critic_obs = None if critic_obs_keys is None else ObsUnpacker(critic_obs_keys, list(critic_image_keys), augment_shift)
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         pass
 
     @property
     def in_keys(self):
-        return [
+        keys = [
             self.tensor_keys.action,
             ("next", self.tensor_keys.reward),
             ("next", self.tensor_keys.done),
@@ -144,6 +148,9 @@ class D4PGLoss(LossModule):
             *self.obs.keys,
             *[("next", k) for k in self.obs.keys],
         ]
+        if self.critic_obs is not None:
+            keys += [*self.critic_obs.keys, *[("next", k) for k in self.critic_obs.keys]]
+        return keys
 
     def _weights(self, td: TensorDictBase) -> torch.Tensor | None:
         w = self._maybe_get_priority_weight(td)
@@ -164,7 +171,8 @@ class D4PGLoss(LossModule):
     def _actor_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
         obs = self.obs(tensordict)
         action = self.actor_network(*obs)
-        logits = self.qvalue_network.member(*obs, action, index=0)
+        cobs = obs if self.critic_obs is None else self.critic_obs(tensordict)
+        logits = self.qvalue_network.member(*cobs, action, index=0)
         q = (torch.softmax(logits, -1) * self.support).sum(-1)
         w = self._weights(tensordict)
         loss = -q.mean() if w is None else -(q * w).mean()
@@ -176,13 +184,16 @@ class D4PGLoss(LossModule):
         with torch.no_grad():
             next_obs = self.obs(tensordict, nxt=True)
             next_action = self.target_actor(*next_obs)
+            if self.critic_obs is not None:
+                next_obs = self.critic_obs(tensordict, nxt=True)
             next_probs = torch.softmax(self.target_qvalue(*next_obs, next_action)[0], -1)
             reward = nxt.get(self.tensor_keys.reward).reshape(-1)
             term = nxt.get(self.tensor_keys.terminated).reshape(-1)
             g = discount(tensordict, self.gamma, self.tensor_keys.steps_to_next_obs)
             g = (g.reshape(-1) if torch.is_tensor(g) else torch.full_like(reward, g)) * (~term)
             target = categorical_projection(next_probs, reward, g, self.support, self._bounds)
-        logits = self.qvalue_network(*self.obs(tensordict), tensordict.get(self.tensor_keys.action))[0]
+        cobs = (self.obs if self.critic_obs is None else self.critic_obs)(tensordict)
+        logits = self.qvalue_network(*cobs, tensordict.get(self.tensor_keys.action))[0]
         logp = torch.log_softmax(logits, -1)
         ce = -(target * logp).sum(-1)
         w = self._weights(tensordict)

@@ -56,6 +56,9 @@ class TD3Loss(LossModule):
         noise_clip: clip c of that noise.
         loss_function: ``"l2"`` | ``"smooth_l1"`` | ``"l1"``.
         augment_shift: DrQ random-shift pad [pixels] applied to image observations (0 = off).
+        critic_obs_keys, critic_image_keys: what the critics see when it differs from the actor's input (asymmetric
+            actor-critic, Pinto et al. 2017: privileged state for the critics, the camera for the actor); ``None`` =
+            ``obs_keys`` (one unpacking per batch, shared).
         use_prioritized_weights: weight the critic loss by ``priority_weight`` when present ("auto").
     """
 
@@ -104,6 +107,8 @@ class TD3Loss(LossModule):
         noise_clip: float = 0.5,
         loss_function: str = "l2",
         augment_shift: int = 0,
+        critic_obs_keys: list[str] | None = None,
+        critic_image_keys: list[str] = (),
         use_prioritized_weights: str | bool = "auto",
     ) -> None:
         super().__init__()
@@ -121,6 +126,7 @@ class TD3Loss(LossModule):
         self.register_buffer("min_action", torch.as_tensor(action_low, dtype=torch.float32).clone())
         self.register_buffer("max_action", torch.as_tensor(action_high, dtype=torch.float32).clone())
         self.obs = ObsUnpacker(obs_keys, list(image_keys), augment_shift)
+        self.critic_obs = None if critic_obs_keys is None else ObsUnpacker(critic_obs_keys, list(critic_image_keys), augment_shift)
         self._in_keys = None
 
     # TorchRL bookkeeping -------------------------------------------------------------
@@ -137,6 +143,8 @@ class TD3Loss(LossModule):
             *self.obs.keys,
             *[("next", k) for k in self.obs.keys],
         ]
+        if self.critic_obs is not None:
+            keys += [*self.critic_obs.keys, *[("next", k) for k in self.critic_obs.keys]]
         return keys
 
     def _weights(self, td: TensorDictBase) -> torch.Tensor | None:
@@ -163,7 +171,8 @@ class TD3Loss(LossModule):
     def _actor_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
         obs = self.obs(tensordict)
         action = self.actor_network(*obs)
-        q = self.qvalue_network.member(*obs, action, index=0).squeeze(-1)
+        cobs = obs if self.critic_obs is None else self.critic_obs(tensordict)
+        q = self.qvalue_network.member(*cobs, action, index=0).squeeze(-1)
         loss = self._reduce(-q, self._weights(tensordict))
         # "_action", "_q": for the actor regularisers of torcsrl.agents._build.update (popped there, not logged)
         return loss, {"state_action_value_actor": q.detach().mean(), "_action": action, "_q": q.detach()}
@@ -176,6 +185,8 @@ class TD3Loss(LossModule):
             if self.policy_noise > 0:
                 noise = torch.randn_like(next_action).mul_(self.policy_noise).clamp_(-self.noise_clip, self.noise_clip)
                 next_action = torch.clamp(next_action.add_(noise), self.min_action, self.max_action)
+            if self.critic_obs is not None:
+                next_obs = self.critic_obs(tensordict, nxt=True)
             next_q = self.target_qvalue(*next_obs, next_action).squeeze(-1)  # [E, B]
             next_q = torch.amin(next_q, 0) if next_q.shape[0] > 1 else next_q[0]
             reward = nxt.get(self.tensor_keys.reward).reshape(-1)
@@ -190,7 +201,7 @@ class TD3Loss(LossModule):
         """``td_error``: also return the per-sample TD error (the priority of prioritized replay)."""
         action = tensordict.get(self.tensor_keys.action)
         target, next_q = self._target(tensordict, action)
-        q = self.qvalue_network(*self.obs(tensordict), action).squeeze(-1)  # [E, B]
+        q = self.qvalue_network(*(self.obs if self.critic_obs is None else self.critic_obs)(tensordict), action).squeeze(-1)  # [E, B]
         w = self._weights(tensordict)
         if w is None and self.loss_function == "l2":  # one fused kernel: sum_e mean_b (q - y)^2
             loss = nn.functional.mse_loss(q, target.expand_as(q)) * q.shape[0]

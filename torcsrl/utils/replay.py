@@ -91,8 +91,8 @@ class Priorities:
         return index, (w / w_max).to(torch.float32)
 
     def update(self, index: torch.Tensor, priority: torch.Tensor) -> None:
-        pr = priority.detach().to(torch.float64).reshape(-1).abs() + self.eps
-        self.prio[index.reshape(-1)] = pr
+        pr = priority.detach().to("cpu", torch.float64).reshape(-1).abs() + self.eps  # the loss may run on a GPU (device=cuda)
+        self.prio[index.reshape(-1).cpu()] = pr
         self.max = max(self.max, float(pr.max()))
 
     def state_dict(self) -> dict:
