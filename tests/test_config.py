@@ -99,7 +99,7 @@ def test_groups_cover_the_registries():
     assert set(REWARD_PRESETS) | {"andersson"} == set(options("reward"))
     expected = set(degradation_names()) | {f"weather.{p}" for p in preset_names()} | {"none", "randomised"}
     assert expected == set(options("degradation"))
-    assert {"rangefinder", "pixels", "both"} == set(options("sensors"))
+    assert {"rangefinder", "pixels", "both", "camera"} == set(options("sensors"))
     assert not list(CONF.rglob("__init__.py"))
 
 
@@ -174,7 +174,7 @@ def test_every_algo_sensors_degradation_surface_combination(composed):
         else:  # e.g. camera.fog on rangefinder + state: refused before training, by name
             bad += 1
             assert len(found) == 1 and "does not include" in found[0] and deg.replace(".", "_") in found[0], found
-    assert n == len(options("algo")) * 3 * len(options("degradation")) * 8
+    assert n == len(options("algo")) * len(options("sensors")) * len(options("degradation")) * 8
     assert 0 < bad < n
 
 
