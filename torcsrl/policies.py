@@ -12,6 +12,8 @@ spec                          policy
                               :func:`export_policy` (actor weights + config only)
 ``reference``                 the shipped reference driver, :data:`REFERENCE_POLICY`
 ``reference-td3``             the shipped RL (TD3) driver, :data:`REFERENCE_RL_POLICY`
+``reference_camera``          the shipped camera-only driver (hood camera + telemetry),
+                              :data:`REFERENCE_CAMERA_POLICY` (also ``reference-camera``)
 ``expert``                    the scripted expert (:mod:`torcsrl.envs.expert`: pure pursuit on
                               a racing line + speed profile) driven from the ``state``
                               observation and ``info/distFromStart`` (an observation adapter:
@@ -22,6 +24,8 @@ spec                          policy
 ``sensor``                    :class:`SensorDriver`: a stateless rangefinder + state driver (target
                               speed from the free distance ahead, traction control) whose choices the
                               observation explains: the imitation teacher of ``demos.teacher=sensor``
+``sensor_grip``               the same driver told the friction under the car (``info/surfaceMu``):
+                              the privileged teacher of the camera driver (``demos.teacher=sensor_grip``)
 ``random``                    uniform random actions in [-1, 1], seeded per episode (R_random)
 ============================  =================================================================
 
@@ -53,6 +57,7 @@ from tensordict import TensorDictBase
 
 __all__ = [
     "BUILTIN_POLICIES",
+    "REFERENCE_CAMERA_POLICY",
     "REFERENCE_POLICY",
     "Policy",
     "PolicyError",
@@ -76,8 +81,10 @@ DYNAMICS_KEYS = ("control_hz", "substeps", "vehicle", "vehicle_overrides", "rang
 REFERENCE_POLICY = Path(__file__).resolve().parent / "assets" / "reference_dagger.pt"
 #: The shipped RL (TD3) driver, ``reference-td3`` (``reference_td3.md``).
 REFERENCE_RL_POLICY = Path(__file__).resolve().parent / "assets" / "reference_td3.pt"
+#: The shipped camera-only driver, ``reference_camera`` (``reference_camera.md``: command, selection, figures).
+REFERENCE_CAMERA_POLICY = Path(__file__).resolve().parent / "assets" / "reference_camera.pt"
 #: Names of the built-in policies (anything else is a checkpoint path).
-BUILTIN_POLICIES = ("expert", "heuristic", "sensor", "sensor_grip", "random", "reference", "reference-td3")
+BUILTIN_POLICIES = ("expert", "heuristic", "sensor", "sensor_grip", "random", "reference", "reference-td3", "reference_camera")
 
 
 class PolicyError(ValueError):
@@ -621,6 +628,10 @@ def load_policy(spec: str | Path | Policy) -> Policy:
         return CheckpointPolicy(REFERENCE_POLICY, name="reference")
     if s == "reference-td3":
         return CheckpointPolicy(REFERENCE_RL_POLICY, name="reference-td3")
+    if s in ("reference_camera", "reference-camera"):
+        if not REFERENCE_CAMERA_POLICY.is_file():
+            raise PolicyError(f"the camera driver {REFERENCE_CAMERA_POLICY} is not shipped yet; pass a checkpoint path")
+        return CheckpointPolicy(REFERENCE_CAMERA_POLICY, name="reference_camera")
     p = Path(s)
     if not p.exists():
         raise PolicyError(f"policy {s!r} is neither a checkpoint file that exists nor one of {', '.join(BUILTIN_POLICIES)}")
