@@ -388,3 +388,37 @@ def test_car_cameras_render_each_car_on_its_own_track_and_surface(client):
     cam = Camera(client, 48, 48, renderer="tiny", worlds=list(cams._worlds.values()))
     ref, _ = cam.render([xy_h[0] + 10_000.0, xy_h[1], Z_COM], yaw[2])
     np.testing.assert_array_equal(obs["pixels"][2], ref)
+
+
+def test_only_the_worlds_in_use_stay_built_so_physics_does_not_slow_down():
+    """Every built world's decor costs each physics step (pybullet steps every body of the client), so a car
+    that changes track leaves at most ``max_worlds`` worlds behind, and the body count stays bounded."""
+    import torch
+
+    from torcsrl.envs import make_env
+
+    env = make_env(track=["oval", "hairpins", "kidney", "esses"], sensors=("pixels",), camera={"height": 24, "width": 32},
+                   seed=0, max_steps=3)
+    core = env.core
+    try:
+        counts, tracks = [], set()
+        for _ in range(8):
+            td = env.reset()
+            td = env.step(td.set("action", torch.tensor([0.0, 0.3])))["next"]
+            assert td["pixels"].float().std() > 1.0
+            tracks.add(core.car_tracks[0].name)
+            assert len(core.camera._worlds) == 1  # the default: only the world the car drives
+            counts.append(p.getNumBodies(physicsClientId=core.client))
+        assert len(tracks) >= 2 and max(counts) - min(counts) < 400  # a world is ~60-130 bodies; without eviction 4 worlds pile up
+    finally:
+        env.close()
+    env = make_env(track=["oval", "hairpins"], sensors=("pixels",), camera={"height": 24, "width": 32, "max_worlds": 2}, seed=0, max_steps=3)
+    try:
+        for _ in range(6):
+            env.reset()
+            env.step(env.reset().set("action", torch.tensor([0.0, 0.3])))
+        assert len(env.core.camera._worlds) == len({t.name for t in env.core._geometry}) == 2  # both kept when allowed
+    finally:
+        env.close()
+    with pytest.raises(ValueError, match="max_worlds"):
+        make_env(track="oval", sensors=("pixels",), camera={"max_worlds": 0})
