@@ -137,6 +137,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--laps", type=int, default=10)
     ap.add_argument("--generated", type=int, default=20, help="held-out generated tracks (seeds 0..N-1)")
     ap.add_argument("--generator", choices=("gen", "proc"), default="gen")
+    ap.add_argument("--no-bundled", action="store_true",
+                    help="drive only the generated tracks (e.g. 2-lap trials of them beside a 10-lap run of set:heldout)")
     ap.add_argument("--surfaces", nargs="+", default=["asphalt", "dirt"])
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--curve", action="store_true", help="plot held-out completion against frames for each run folder")
@@ -172,7 +174,9 @@ def main(argv: list[str] | None = None) -> int:
     else:
         heldout = _tracks.resolve("set:heldout")
         generated = heldout_names(args.generated, args.generator) if args.generated else []
-    tracks = heldout + generated
+    tracks = (generated if args.no_bundled else heldout + generated)
+    if not tracks:
+        ap.error("no tracks to drive: --no-bundled needs --generated N > 0")
     out = Path(args.out)
     t0 = time.perf_counter()
     if args.curve:
