@@ -156,3 +156,21 @@ def test_mismatched_observations_fail_in_one_line(distilled):
     finally:
         for e in envs.values():
             e.close()
+
+
+def test_the_shipped_camera_driver_loads_and_sees_only_the_camera_set():
+    from torcsrl.policies import REFERENCE_CAMERA_POLICY, load_policy
+
+    assert REFERENCE_CAMERA_POLICY.is_file() and REFERENCE_CAMERA_POLICY.with_suffix(".md").is_file()
+    pol = load_policy("reference_camera")
+    assert list(pol.obs_keys) == ["pixels", "telemetry"] and pol.obs_shapes["pixels"] == (3, 64, 96)
+    env = make_env(track="oval", sensors=pol.env_overrides["sensors"], camera=pol.env_overrides["camera"],
+                   control_hz=pol.env_overrides.get("control_hz"), substeps=pol.env_overrides.get("substeps"))
+    try:
+        pol.check_env(env)
+        td = env.reset()
+        for _ in range(20):
+            td = env.step(pol(td))["next"]
+        assert float(td["telemetry"][TELEMETRY_SLOTS.index("speedX_kmh")]) > 10.0  # it drives off the grid
+    finally:
+        env.close()
