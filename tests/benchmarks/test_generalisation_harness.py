@@ -35,3 +35,13 @@ def test_one_real_trial_of_the_heuristic():
     b = _bench()
     (row,) = b.run_grid(["heuristic"], ["oval"], ["asphalt"], 1, 1, {"heuristic": 10.0})
     assert row["track"] == "oval" and row["success"] and row["fastest_lap"] > 30
+
+
+def test_no_bundled_without_generated_tracks_fails_in_one_line(capsys):
+    import pytest
+
+    b = _bench()
+    with pytest.raises(SystemExit):
+        b.main(["--policy", "heuristic", "--no-bundled", "--generated", "0"])
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "no tracks to drive" in err and "--generated" in err
