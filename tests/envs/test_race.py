@@ -302,7 +302,7 @@ def test_torchrl_env_pickles():
 
 # ---------------------------------------------------------------- bad input
 def test_bad_input_messages():
-    with pytest.raises(ValueError, match=r"unknown sensors \['lidar'\]; allowed: rangefinder, state, pixels, depth"):
+    with pytest.raises(ValueError, match=r"unknown sensors \['lidar'\]; allowed: rangefinder, state, telemetry, pixels, depth"):
         RaceEnv(sensors=("lidar",))
     with pytest.raises(ValueError, match=r"unknown reward terms \['sped'\]; terms: speed_cos"):
         RaceEnv(reward={"sped": 1.0})
