@@ -151,7 +151,7 @@ def code_hash() -> str:
     root = Path(__file__).resolve().parent
     h = hashlib.sha256()
     files = sorted([*(root / "envs").rglob("*.py"), *(root / "envs").rglob("*.yaml"), *(root / "transforms").rglob("*.py"),
-                    root / "evaluate.py"])
+                    *(root / "evaluate").glob("*.py")])
     for f in files:
         if "__pycache__" in f.parts:
             continue

@@ -53,6 +53,7 @@ __all__ = [
     "SENSOR_KEYS",
     "derive_seed",
     "seed_degradations",
+    "seed_degradation_rows",
 ]
 
 #: The observation keys the env produces, by sensor group.
@@ -261,13 +262,43 @@ class Degradation(Transform):
             self._dev_generators[device] = g
         return g
 
+    def set_row_seeds(self, seeds: Sequence[int] | None) -> None:
+        """One generator per env along the first batch dimension (None: back to the one generator).
+
+        Row ``i`` of a batch ``[N, ...]`` then draws exactly what a copy of this transform on ONE
+        env (batch ``[]``), seeded with ``seeds[i]``, draws: every draw of shape ``[N, *rest]`` is
+        ``[N]`` draws of shape ``rest``, one from each row's generator. The batched evaluation
+        (:mod:`torcsrl.evaluate.batched`) drives the episodes of a cell as rows of one batch this
+        way, and each keeps the weather of its own seed (common random numbers). CPU only.
+        """
+        self._row_generators = None if seeds is None else [
+            torch.Generator().manual_seed(int(s) & ((1 << 63) - 1)) for s in seeds]
+
+    def _rows(self, shape, device) -> list | None:
+        rows = getattr(self, "_row_generators", None)
+        if rows is None or device is None or torch.device(device).type != "cpu":
+            return None
+        shape = tuple(shape)
+        if not shape or shape[0] != len(rows):
+            raise RuntimeError(f"{type(self).__name__}: {len(rows)} row generators for a draw of shape {shape}")
+        return rows
+
     def rand(self, shape, device) -> torch.Tensor:
+        rows = self._rows(shape, device)
+        if rows is not None:
+            return torch.stack([torch.rand(tuple(shape)[1:], generator=g) for g in rows])
         return torch.rand(shape, generator=self._gen(device), device=device)
 
     def randn(self, shape, device) -> torch.Tensor:
+        rows = self._rows(shape, device)
+        if rows is not None:
+            return torch.stack([torch.randn(tuple(shape)[1:], generator=g) for g in rows])
         return torch.randn(shape, generator=self._gen(device), device=device)
 
     def randint(self, low: int, high: int, shape, device) -> torch.Tensor:
+        rows = self._rows(shape, device)
+        if rows is not None:
+            return torch.stack([torch.randint(low, high, tuple(shape)[1:], generator=g) for g in rows])
         return torch.randint(low, high, shape, generator=self._gen(device), device=device)
 
     # ------------------------------------------------------------------ exact resume
@@ -289,6 +320,7 @@ class Degradation(Transform):
         g.set_state(self._generator.get_state())
         other._generator = g
         other._dev_generators = {}
+        other._row_generators = None
         other._state = None
         other._device_ladder = {}
         return other
@@ -600,6 +632,15 @@ def _walk(obj) -> list[Degradation]:
     elif isinstance(obj, Degradation):
         found.append(obj)
     return found
+
+
+def seed_degradation_rows(obj: EnvBase | Transform, seeds: Sequence[int]) -> int:
+    """:func:`seed_degradations` per row: row ``i`` of every :class:`Degradation` in ``obj`` draws what
+    a one-env copy given ``seed_degradations(copy, seeds[i])`` would (see :meth:`Degradation.set_row_seeds`)."""
+    ts = _walk(obj)
+    for i, t in enumerate(ts):
+        t.set_row_seeds([derive_seed(s, "degradation", i) for s in seeds])
+    return len(ts)
 
 
 def seed_degradations(obj: EnvBase | Transform, seed: int) -> int:
