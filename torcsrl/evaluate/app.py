@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -179,34 +178,58 @@ def map_tasks(fn: Callable[..., Any], tasks: Sequence[tuple], workers: int = 1):
 
 
 # --------------------------------------------------------------------------------------------
-def main(argv: Sequence[str] | None = None) -> int:
-    from torcsrl.utils.faults import exit_code, graceful_termination, os_error_line
+#: The flags of earlier versions, aliases of the config's keys (conf/evaluate.yaml).
+FLAGS = {"--policy": ("policy", "one"), "--track": ("tracks", "many"), "--tracks": ("tracks", "many"),
+         "--surface": ("surfaces", "many"), "--surfaces": ("surfaces", "many"), "--laps": ("laps", "one"),
+         "--episodes": ("episodes", "one"), "--seed": ("seed", "one"), "--degradation": ("corruption", "one"),
+         "--severity": ("severity", "one"), "--max-steps": ("max_steps", "one"), "--start": ("start", "one"),
+         "--expert-laps": ("expert_laps", "one"), "--no-plots": ("plots", "false"), "--workers": ("workers", "one"),
+         "--out": ("out", "one")}
+#: Types of the config's values (checked before anything runs).
+TYPES = {"policy": (str,), "tracks": (str, list), "surfaces": (str, list, type(None)), "laps": (int,), "episodes": (int,),
+         "seed": (int,), "corruption": (str, type(None)), "severity": (int, type(None)), "max_steps": (int, type(None)),
+         "start": (str,), "expert_laps": (int,), "plots": (bool,), "workers": (int,), "out": (str, type(None))}
 
-    parser = argparse.ArgumentParser(prog="python -m torcsrl.evaluate", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--policy", default="expert", help="checkpoint path, 'reference', 'expert', 'sensor', 'heuristic' or 'random'")
-    parser.add_argument("--track", "--tracks", dest="track", nargs="+", default=["set:heldout"], help="track names and/or sets (set:heldout)")
-    parser.add_argument("--surface", "--surfaces", dest="surface", nargs="+", default=None, help="road surfaces (default: each track's own)")
-    parser.add_argument("--laps", type=int, default=10)
-    parser.add_argument("--episodes", type=int, default=1)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--degradation", default=None, help="degradation name (e.g. rangefinder.fog) or name@severity")
-    parser.add_argument("--severity", type=int, default=None, help="severity 1..5 of --degradation (default 3)")
-    parser.add_argument("--max-steps", type=int, default=None, help="step cap per episode (default: N laps at 10 m/s)")
-    parser.add_argument("--start", choices=("grid", "random"), default="grid", help="start on the line or at a seeded random arc length")
-    parser.add_argument("--expert-laps", type=int, default=2, help="laps for the expert's reference time (0: skip)")
-    parser.add_argument("--no-plots", action="store_true")
-    parser.add_argument("--workers", type=int, default=1, help="processes driving tracks in parallel")
-    parser.add_argument("--out", default=None, help="output folder (default outputs/evaluate/<policy>/<time>)")
-    args = parser.parse_args(argv)
+
+def run_config(cfg: Any, out: str | Path | None = None, verbose: bool = True) -> dict[str, Any]:
+    """:func:`evaluate` from a composed ``conf/evaluate.yaml`` (checked first: unknown keys, types, names);
+    ``out`` (a multirun's job folder) wins over ``cfg.out``."""
+    from torcsrl.utils.hydra_app import AppError, check_keys
+
+    try:
+        c = check_keys(cfg, "evaluate", TYPES)
+    except AppError as err:
+        raise EvalError(str(err)) from None
+    if c["start"] not in ("grid", "random"):
+        raise EvalError(f"start must be grid or random, got {c['start']!r}")
+    deg = parse_degradation(c["corruption"], c["severity"]) if c["corruption"] else None
+    if not c["corruption"] and c["severity"] not in (None, 0):
+        raise EvalError(f"severity={c['severity']} needs a degradation (corruption=<name>, --degradation <name>)")
+    out = out or c["out"] or str(Path("outputs") / "evaluate" / Path(str(c["policy"])).stem / time.strftime("%Y-%m-%d_%H-%M-%S"))
+    return evaluate(c["policy"], c["tracks"], c["surfaces"], laps=c["laps"], seed=c["seed"], out_dir=out, degradation=deg,
+                    episodes=c["episodes"], max_steps=c["max_steps"], env_kwargs={"start": c["start"]},
+                    expert_laps=c["expert_laps"], plots=c["plots"], workers=c["workers"], verbose=verbose)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m torcsrl.evaluate [key=value ...] [--flag value ...] [-m]`` (see conf/evaluate.yaml)."""
+    from torcsrl.utils.faults import exit_code, graceful_termination, os_error_line
+    from torcsrl.utils.hydra_app import AppError, compose, flags_to_overrides, is_multirun, run_multirun
+
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if any(a in ("-h", "--help") for a in argv):
+        print(__doc__.split("\n\n")[0] + "\n\nusage: python -m torcsrl.evaluate [key=value ...] [-m]; keys and defaults: "
+              "conf/evaluate.yaml; flags: " + " ".join(FLAGS))
+        return 0
     torch.set_num_threads(1)
     try:
+        overrides = flags_to_overrides(argv, FLAGS)
+        if is_multirun(overrides):
+            return run_multirun("evaluate", overrides, _multirun_job, "torcsrl.evaluate")
+        cfg = compose("evaluate", overrides)
         with graceful_termination():
-            deg = parse_degradation(args.degradation, args.severity) if args.degradation else None
-            out = args.out or str(Path("outputs") / "evaluate" / Path(str(args.policy)).stem / time.strftime("%Y-%m-%d_%H-%M-%S"))
-            res = evaluate(args.policy, args.track, args.surface, laps=args.laps, seed=args.seed, out_dir=out, degradation=deg,
-                           episodes=args.episodes, max_steps=args.max_steps, env_kwargs={"start": args.start},
-                           expert_laps=args.expert_laps, plots=not args.no_plots, workers=args.workers)
-    except (EvalError, PolicyError) as err:
+            res = run_config(cfg)
+    except (EvalError, PolicyError, AppError) as err:
         print(f"torcsrl.evaluate: error: {err}", file=sys.stderr)
         return 2
     except OSError as err:
@@ -216,8 +239,26 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"torcsrl.evaluate: error: stopped by {getattr(err, 'name', 'SIGINT')}; its worker processes were stopped "
               "(run it again for the full evaluation)", file=sys.stderr)
         return exit_code(err)
-    print((Path(out) / "evaluation.md").read_text())
+    out = Path(res["files"][0]).parent
+    print((out / "evaluation.md").read_text())
+    print(f"evaluation: {out}")
     return 0
+
+
+def _multirun_job(cfg: Any, job_dir: Path) -> None:
+    """One job of ``python -m torcsrl.evaluate -m ...``: its outputs in its own Hydra job folder."""
+    from torcsrl.utils.faults import graceful_termination, os_error_line
+
+    torch.set_num_threads(1)
+    try:
+        with graceful_termination():
+            run_config(cfg, out=job_dir)
+    except (EvalError, PolicyError) as err:
+        print(f"torcsrl.evaluate: error: {err}", file=sys.stderr)
+        sys.exit(2)
+    except OSError as err:
+        print(f"torcsrl.evaluate: error: {os_error_line(err)}", file=sys.stderr)
+        sys.exit(2)
 
 
 if __name__ == "__main__":
