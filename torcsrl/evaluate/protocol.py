@@ -198,23 +198,25 @@ class EpisodeBook:
         self.end: list[dict[str, Any] | None] = [None] * self.n
         self.active = np.ones(self.n, dtype=bool)
 
-    def record(self, action: Any, nxt: Any, reason: Sequence[int] | np.ndarray) -> np.ndarray:
+    def record(self, action: Any, nxt: Any, reason: Sequence[int] | np.ndarray | None) -> np.ndarray:
         """Book one step of every car still running from the step's ``action [N, A]`` and its
-        ``"next"`` tensordict (reward, clean or plain ``state``, info, done flags);
-        ``reason [N]``: the env's termination reason codes. Returns the cars done at this step."""
-        from torcsrl.envs.race import TERMINATION_REASONS
-
+        ``"next"`` tensordict (reward, clean or plain ``state``, lap keys, done flags);
+        ``reason [N]``: the env's termination reason codes (None: not known). Returns the cars
+        done at this step. Envs without a ``state`` or lap keys (the toy env) book what they have."""
         n = self.n
         a = action.reshape(n, -1)[:, 0].tolist()
         rew = nxt.get("reward").reshape(n).tolist()
         st = nxt.get("state_clean", None)
-        st = (st if st is not None else nxt.get("state")).reshape(n, -1)
-        tp = st[:, self._i_tp].tolist()
-        v = st[:, self._i_v].tolist()
-        info = nxt.get("info")
-        lap = info.get("lap").reshape(n).tolist()
-        last = info.get("lastLapTime").reshape(n).tolist()
-        dfs = info.get("distFromStart").reshape(n).tolist() if self.trace else None
+        st = st if st is not None else nxt.get("state", None)
+        if st is not None:
+            st = st.reshape(n, -1)
+            tp, v = st[:, self._i_tp].tolist(), st[:, self._i_v].tolist()
+        else:
+            tp = v = [math.nan] * n
+        lap_key, time_key = lap_keys(nxt)
+        lap = nxt.get(lap_key).reshape(n).tolist() if lap_key is not None else [0] * n
+        last = nxt.get(time_key).reshape(n).tolist() if time_key is not None else [0.0] * n
+        dfs = nxt.get(("info", "distFromStart")).reshape(n).tolist() if self.trace else None
         done = nxt.get("done").reshape(n).tolist()
         newly = []
         for i in np.flatnonzero(self.active).tolist():
@@ -232,33 +234,28 @@ class EpisodeBook:
             if done[i]:
                 newly.append(i)
         if newly:
-            term = nxt.get("terminated").reshape(n).tolist()
-            trunc = nxt.get("truncated").reshape(n).tolist()
-            fin = info.get("finished").reshape(n).tolist()
-            dist = info.get("distRaced").reshape(n).tolist()
-            for i in newly:
-                self.end[i] = {"terminated": bool(term[i]), "truncated": bool(trunc[i]), "finished": bool(fin[i]),
-                               "distance_m": dist[i],
-                               "termination": TERMINATION_REASONS[int(reason[i])] if term[i] else ""}
-                self.active[i] = False
+            self._end(nxt, reason, newly)
         return np.asarray(newly, dtype=np.int64)
 
-    def close(self, nxt: Any, reason: Sequence[int] | np.ndarray) -> None:
-        """End the books of the cars still running (the step cap ran out) at the last step."""
-        n = self.n
-        if not self.active.any():
-            return
-        info = nxt.get("info")
-        term = nxt.get("terminated").reshape(n).tolist()
-        trunc = nxt.get("truncated").reshape(n).tolist()
-        fin = info.get("finished").reshape(n).tolist()
-        dist = info.get("distRaced").reshape(n).tolist()
+    def _end(self, nxt: Any, reason: Sequence[int] | np.ndarray | None, cars: Sequence[int]) -> None:
         from torcsrl.envs.race import TERMINATION_REASONS
 
-        for i in np.flatnonzero(self.active).tolist():
+        n = self.n
+        info = nxt.get("info", None)
+        term = nxt.get("terminated").reshape(n).tolist()
+        trunc = nxt.get("truncated").reshape(n).tolist()
+        fin = info.get("finished").reshape(n).tolist() if info is not None else [False] * n
+        dist = info.get("distRaced").reshape(n).tolist() if info is not None else [math.nan] * n
+        for i in cars:
+            why = TERMINATION_REASONS[int(reason[i])] if reason is not None else "terminated"
             self.end[i] = {"terminated": bool(term[i]), "truncated": bool(trunc[i]), "finished": bool(fin[i]),
-                           "distance_m": dist[i], "termination": TERMINATION_REASONS[int(reason[i])] if term[i] else ""}
+                           "distance_m": dist[i], "termination": why if term[i] else ""}
             self.active[i] = False
+
+    def close(self, nxt: Any, reason: Sequence[int] | np.ndarray | None) -> None:
+        """End the books of the cars still running (the step cap ran out) at the last step."""
+        if self.active.any():
+            self._end(nxt, reason, np.flatnonzero(self.active).tolist())
 
     def row(self, i: int, dt: float) -> dict[str, Any]:
         """Car ``i``'s episode numbers (see :func:`run_cell`)."""
@@ -297,41 +294,64 @@ class EpisodeBook:
         return {"s": np.asarray(self.s_hist[i]), "track_pos": np.asarray(self.tpos[i]), "speed_kmh": np.asarray(self.speed[i])}
 
 
-@torch.no_grad()
-def run_episode(env, policy: Policy, ctx: EpisodeContext, laps: int, max_steps: int, *, trace: bool = False,
-                frames: int = 0, observer: Callable[[int, Any], None] | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
-    """Drive one episode (the env must be seeded already); returns (row, trace).
+def lap_keys(td: Any) -> tuple:
+    """(completed-laps key, last-lap-time key) of an env's output: the race env's ``info`` entries or the
+    toy env's ``laps`` / ``lap_time``; ``None`` where absent."""
+    keys = td.keys(include_nested=True)
+    if ("info", "lap") in keys:
+        return ("info", "lap"), ("info", "lastLapTime")
+    return ("laps" if "laps" in keys else None), ("lap_time" if "lap_time" in keys else None)
 
-    ``row`` holds the episode's numbers (see :func:`run_cell`); ``trace`` (when asked) the
-    per-step ``s`` [m], ``track_pos``, ``speed_kmh`` and up to ``frames`` camera frames.
-    ``observer(step, td)`` sees every tensordict the policy sees (before it acts).
-    """
+
+@torch.no_grad()
+def drive_episode(env, act: Callable[[Any], Any], laps: int, max_steps: int, *, trace: bool = False, frames: int = 0,
+                  observer: Callable[[int, Any], None] | None = None, on_reset: Callable[[], None] | None = None,
+                  ) -> tuple[EpisodeBook, list[torch.Tensor]]:
+    """THE episode: reset ``env`` (seeded already), then ``act(td)`` (writes ``"action"``) and step until
+    the env says done or ``max_steps`` steps; every step booked by an :class:`EpisodeBook`. Returns the
+    book and up to ``frames`` camera frames (every 5th step). ``on_reset()`` runs right after the reset
+    (a policy's episode start); ``observer(step, td)`` sees what the policy sees. One implementation for
+    :func:`run_episode` (evaluate, report) and ``torcsrl.train.validate``; the batched path
+    (:func:`torcsrl.evaluate.batched.run_batch`) books its cars with the same :class:`EpisodeBook`."""
     from torchrl.envs.utils import step_mdp
 
     td = env.reset()
-    policy.reset(ctx)
-    core = _base(env).core
+    if on_reset is not None:
+        on_reset()
+    core = getattr(_base(env), "core", None)
     book = EpisodeBook(1, laps, trace=trace)
-    pix = []
+    pix: list[torch.Tensor] = []
     nxt = td
     for t in range(int(max_steps)):
         if observer is not None:
             observer(t, td)
         if frames and len(pix) < frames and t % 5 == 0 and "pixels" in td.keys():  # 10 frames/s at 50 Hz
             pix.append(td.get("pixels").clone())
-        td = policy(td)
+        td = act(td)
         td = env.step(td)
         nxt = td.get("next")
-        if len(book.record(td.get("action"), nxt, core.reason)):
+        if len(book.record(td.get("action"), nxt, core.reason if core is not None else None)):
             break
         td = step_mdp(td)
-    book.close(nxt, core.reason)
-    row = book.row(0, float(core.dt))
+    book.close(nxt, core.reason if core is not None else None)
+    return book, pix
+
+
+def run_episode(env, policy: Policy, ctx: EpisodeContext, laps: int, max_steps: int, *, trace: bool = False,
+                frames: int = 0, observer: Callable[[int, Any], None] | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Drive one episode of ``policy`` (the env must be seeded already); returns (row, trace).
+
+    ``row`` holds the episode's numbers (see :func:`run_cell`); ``trace`` (when asked) the
+    per-step ``s`` [m], ``track_pos``, ``speed_kmh`` and up to ``frames`` camera frames.
+    ``observer(step, td)`` sees every tensordict the policy sees (before it acts).
+    """
+    book, pix = drive_episode(env, policy, laps, max_steps, trace=trace, frames=frames, observer=observer,
+                              on_reset=lambda: policy.reset(ctx))
+    row = book.row(0, float(_base(env).core.dt))
     tr = book.trace_of(0) if trace else {}
     if pix:
         tr["frames"] = torch.stack(pix).numpy()
     return row, tr
-
 
 
 def run_cell(policy: Policy, track: str, surface: str | None = None, degradation: Any = None, *, episodes: int = 1,
