@@ -109,7 +109,21 @@ def bench_vector(sensor: str, key: str, data_fn, reps: int) -> tuple[list, list]
 
 
 # ------------------------------------------------------------------------ peers
-def bench_env_b1(reps: int, steps: int = 100) -> list[tuple]:
+def load_baseline(folder: str):
+    """Another copy of ``torcsrl/transforms`` (e.g. ``git archive <rev> torcsrl/transforms | tar -x -C DIR``, then
+    ``DIR/torcsrl/transforms``) imported as the package ``baseline_transforms``: the in-env table then times its
+    stacks beside this checkout's, interleaved in one process on the same env code."""
+    import importlib.util
+
+    init = Path(folder) / "__init__.py"
+    spec = importlib.util.spec_from_file_location("baseline_transforms", init, submodule_search_locations=[str(folder)])
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["baseline_transforms"] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def bench_env_b1(reps: int, steps: int = 100, baseline=None) -> list[tuple]:
     """(stack, degradations acting on the env's keys, us per env step, overhead vs the bare env) in the race
     env, B=1. Presets are built whole; their camera parts find no camera and pass. Every env is built first,
     then timed in turns (``reps`` rounds of ``steps`` steps each, the envs interleaved), so that other jobs
@@ -122,15 +136,24 @@ def bench_env_b1(reps: int, steps: int = 100) -> list[tuple]:
         stacks[f"weather.{p}"] = lambda p=p: make_preset(p, 3, seed=0)
     for n in ("rangefinder.noise", "rangefinder.dropout", "rangefinder.fog", "rangefinder.rain", "rangefinder.snow"):
         stacks[n] = lambda n=n: make_degradation(n, 3, seed=0)
+    wrappers = {name: DegradedEnv for name in stacks}
+    if baseline is not None:  # the same stacks from the baseline copy, in its own DegradedEnv
+        for name in [k for k in stacks if k != "(none)"]:
+            if name.startswith("weather."):
+                stacks[f"{name} (baseline)"] = lambda p=name[8:]: baseline.make_preset(p, 3, seed=0)
+            else:
+                stacks[f"{name} (baseline)"] = lambda n=name: baseline.make_degradation(n, 3, seed=0)
+            wrappers[f"{name} (baseline)"] = baseline.DegradedEnv
     for sensor in ("rangefinder", "state"):
         stacks[f"{sensor} stack"] = lambda sensor=sensor: Compose(
             *[make_degradation(n, 3, seed=i) for i, n in enumerate(degradation_names(sensor))])
     stacks["rangefinder + state stacks"] = lambda: Compose(
         *[make_degradation(n, 3, seed=i) for i, n in enumerate(degradation_names("rangefinder") + degradation_names("state"))])
     envs, tds, applied = {}, {}, {}
+    wrappers = {**{name: DegradedEnv for name in stacks}, **wrappers}
     for name, make in stacks.items():
         base = make_env(track="oval", sensors=("rangefinder", "state"), max_steps=100_000, seed=0)
-        env = base if make is None else DegradedEnv(base, make())
+        env = base if make is None else wrappers[name](base, make())
         present = set(base.observation_spec.keys())
         applied[name] = 0 if make is None else sum(1 for t in env.transform.modules()
                                                    if hasattr(t, "get_sim_state") and any(k in present for k in t.in_keys))
@@ -235,7 +258,10 @@ def _env_table(a) -> None:
           f"<= {GOAL_B1_SHARE:.0%} of the env step; load average {load[0]:.2f} at the start)")
     print(f"| {'stack':28s} | {'applied':>7s} | {'us per step':>11s} | {'overhead':>8s} | goal |")
     print(f"|{'-' * 30}|{'-' * 9}|{'-' * 13}|{'-' * 10}|------|")
-    for name, n, us, share in bench_env_b1(a.env_reps):
+    baseline = load_baseline(a.baseline) if a.baseline else None
+    if baseline is not None:
+        print(f"(baseline rows: the transforms of {a.baseline}, timed beside this checkout's in the same rounds)")
+    for name, n, us, share in bench_env_b1(a.env_reps, baseline=baseline):
         ok = "" if n != 1 else ("ok" if share <= GOAL_B1_SHARE else "MISS")
         print(f"| {name:28s} | {n:7d} | {us:11,.0f} | {share:8.0%} | {ok:4s} |")
 
@@ -247,6 +273,8 @@ def main(argv=None) -> None:
     ap.add_argument("--no-peers", action="store_true")
     ap.add_argument("--env-reps", type=int, default=30, help="rounds of the in-env table (100 steps per env each)")
     ap.add_argument("--only-env", action="store_true", help="print only the in-env table (B=1 in the race env)")
+    ap.add_argument("--baseline", default=None, help="a torcsrl/transforms folder of another revision: its stacks timed beside "
+                                                      "these in the in-env table (see load_baseline)")
     ap.add_argument("--wall", action="store_true", help="wall-clock instead of CPU time")
     a = ap.parse_args(argv)
     if a.wall:

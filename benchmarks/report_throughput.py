@@ -51,6 +51,7 @@ def main(argv=None) -> int:
     ap.add_argument("--laps", type=int, default=1)
     ap.add_argument("--max-steps", type=int, default=None, help="step cap per episode (default: the protocol's, a full lap)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--max-cars", type=int, default=None, help="cars of the batched env (default: the report's batch_cars)")
     a = ap.parse_args(argv)
     torch.set_num_threads(1)
     pol = load_policy(a.policy)
@@ -74,7 +75,7 @@ def main(argv=None) -> int:
             if path == "one car":
                 rows = [run_cell(pol, track, None, c, **kw)[0] for c in cells]
             else:
-                rows = run_batch(pol, track, None, cells, **kw)
+                rows = run_batch(pol, track, None, cells, max_cars=a.max_cars, **kw)
             wall = time.perf_counter() - t0
             steps = sum(r["steps"] for cell in rows for r in cell)
             res[path] = rows

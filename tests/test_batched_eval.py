@@ -43,13 +43,14 @@ def test_row_actor_equals_the_one_car_policy_row_for_row():
     assert not torch.equal(pol._act(*(obs[k] for k in pol.obs_keys)), one)
 
 
-@pytest.mark.parametrize("start", ["grid", "random"])
-def test_batched_cells_equal_the_one_car_path(start):
-    """Clean, step noise, episode faults, a temporal fault and a weather preset; 2 episodes each, 12 cars."""
+@pytest.mark.parametrize("start,max_cars", [("grid", None), ("random", None), ("random", 4)])
+def test_batched_cells_equal_the_one_car_path(start, max_cars):
+    """Clean, step noise, episode faults, a temporal fault and a weather preset; 2 episodes each: 12 cars at once, or
+    4 cars whose groups of 2 are reset to drive the next cell when theirs has ended (continuous batching)."""
     pol = load_policy("reference")
     degs = [None, "rangefinder.fog@3", "weather.rain@4", "state.latency@2", "rangefinder.stuck@5", "rangefinder.bias_scale@2"]
     kw = dict(episodes=2, laps=1, seed=3, max_steps=150, env_kwargs={"start": start})
-    batched = run_batch(pol, "rallycross", None, degs, **kw)
+    batched = run_batch(pol, "rallycross", None, degs, max_cars=max_cars, **kw)
     assert [len(r) for r in batched] == [2] * len(degs)
     for d, rows_b in zip(degs, batched):
         rows_a, _ = run_cell(pol, "rallycross", None, d, **kw)

@@ -120,10 +120,19 @@ class RowActor:
 @torch.no_grad()
 def run_batch(policy: Policy, track: str, surface: str | None, degradations: Sequence[Any], *, episodes: int = 1,
               laps: int = 1, seed: int = 0, max_steps: int | None = None, env_kwargs: Mapping[str, Any] | None = None,
-              ) -> list[list[dict[str, Any]]]:
+              max_cars: int | None = None) -> list[list[dict[str, Any]]]:
     """Drive ``episodes`` episodes of every degradation in ``degradations`` (None / severity 0 = the
     clean cell) on one track as cars of one env; returns one list of rows per degradation, each row
-    what :func:`torcsrl.evaluate.protocol.run_cell` returns for that cell and episode."""
+    what :func:`torcsrl.evaluate.protocol.run_cell` returns for that cell and episode.
+
+    The env has ``max_cars`` cars (default: every episode at once), in groups of ``episodes`` cars:
+    a group drives the episodes of one cell side by side, and when all of them have ended it is reset
+    (alone) to drive the next cell waiting, so that cars do not idle while the slowest episode of the
+    grid finishes (continuous batching). Cars whose episode has ended brake to a halt until their
+    group restarts; their steps are not booked.
+    """
+    from collections import deque
+
     from torcsrl.envs import make_env
     from torcsrl.envs import tracks as _tracks
     from torcsrl.transforms import seed_degradation_rows
@@ -131,13 +140,13 @@ def run_batch(policy: Policy, track: str, surface: str | None, degradations: Seq
     degs: list[Degradation] = [parse_degradation(d) for d in degradations]
     if not degs:
         return []
-    episodes = int(episodes)
+    E = int(episodes)
     geom = _tracks.load(track, surface=surface)
     surface_name = surface or geom.default_surface
     hz = {**dict(env_kwargs or {}), **policy.env_overrides}.get("control_hz", 50.0)
     steps = int(max_steps) if max_steps else default_max_steps(geom.length, laps, 1.0 / float(hz))
-    cars = [(c, e) for c in range(len(degs)) for e in range(episodes)]
-    n = len(cars)
+    groups = max(1, min(len(degs), (int(max_cars) if max_cars else len(degs) * E) // E))
+    n = groups * E
     kw = dict(env_kwargs or {})
     kw.update({k: v for k, v in policy.env_overrides.items() if k != "sensors"})
     sensors = env_sensors(policy)
@@ -146,63 +155,97 @@ def run_batch(policy: Policy, track: str, surface: str | None, degradations: Seq
     try:
         core = env.core
         core.scalar_locate_max_cars = n  # every car located as a one-car env locates it (the same numbers)
-        env_seeds = [seed_for(seed, "env", track, surface_name, e) for e in range(episodes)]
-        deg_seeds = [[seed_for(seed, "degradation", d.name, d.severity, e) for e in range(episodes)] if not d.clean else None
-                     for d in degs]
-        # one reset of every car; the generator a car's start draws come from is the one-car env's
+        env_seeds = [seed_for(seed, "env", track, surface_name, e) for e in range(E)]
         per_car = int(core.start == "random") + int(core.spawn_jitter[0] != 0) + int(core.spawn_jitter[1] != 0)
-        core.rng = _PerCarDraws([np.random.default_rng(env_seeds[e]) for _, e in cars], per_car)
-        td = env.reset()
-        core.rng = np.random.default_rng(seed)
-        stacks = []
-        for c, d in enumerate(degs):
-            if d.clean:
-                stacks.append(None)
-                continue
-            t = d.build()
-            seed_degradation_rows(t, deg_seeds[c])
-            stacks.append(t)
-        spans = [(c * episodes, (c + 1) * episodes) for c in range(len(degs))]
         actor = RowActor(policy)
-        book = EpisodeBook(n, laps)
-        empty = TensorDict({}, batch_size=[episodes])
+        empty = TensorDict({}, batch_size=[E])
+        spans = [slice(g * E, (g + 1) * E) for g in range(groups)]
+        queue = deque(range(len(degs)))
+        cell_of: list[int | None] = [None] * groups
+        stack_of: list[Any] = [None] * groups
+        book_of: list[EpisodeBook | None] = [None] * groups
+        seeds_of: list[list[int] | None] = [None] * groups
+        results: list[list[dict[str, Any]] | None] = [None] * len(degs)
+        dt = float(core.dt)
 
-        def observe(obs_td, first: bool) -> dict[str, torch.Tensor]:
-            """The policy's view: each cell's rows through its own stack."""
-            parts: dict[str, list[torch.Tensor]] = {k: [] for k in sensors}
-            for (r0, r1), t in zip(spans, stacks):
-                sub = TensorDict._new_unsafe({k: obs_td.get(k)[r0:r1] for k in sensors}, batch_size=torch.Size([r1 - r0]))
-                if t is not None:
-                    sub = t._reset(empty, sub) if first else t._call(sub)
-                for k in sensors:
-                    parts[k].append(sub.get(k))
-            return {k: torch.cat(v) if len(v) > 1 else v[0] for k, v in parts.items()}
+        def reset(gs: list[int], full: bool) -> Any:
+            """Reset the cars of groups ``gs`` (all cars when ``full``), each with its episode's start draws."""
+            core.rng = _PerCarDraws([np.random.default_rng(env_seeds[i % E]) for g in gs for i in range(spans[g].start, spans[g].stop)],
+                                    per_car)
+            try:
+                if full:
+                    return env.reset()
+                mask = torch.zeros(n, 1, dtype=torch.bool)
+                for g in gs:
+                    mask[spans[g]] = True
+                return env.reset(TensorDict({"_reset": mask}, batch_size=[n]))
+            finally:
+                core.rng = np.random.default_rng(seed)
 
-        obs = observe(td, True)
-        nxt = td
+        def start(g: int) -> None:
+            c = queue.popleft()
+            d = degs[c]
+            cell_of[g] = c
+            book_of[g] = EpisodeBook(E, laps)
+            seeds_of[g] = [seed_for(seed, "degradation", d.name, d.severity, e) for e in range(E)] if not d.clean else None
+            stack_of[g] = None
+            if not d.clean:
+                t = d.build()
+                seed_degradation_rows(t, seeds_of[g])
+                stack_of[g] = t
+
+        def view(src: Mapping[str, torch.Tensor], g: int, first: bool) -> dict[str, torch.Tensor]:
+            """Group ``g``'s rows of ``src`` (sensor -> [n, ...]) as its policy sees them (through its cell's stack)."""
+            sub = TensorDict._new_unsafe({k: src[k][spans[g]] for k in sensors}, batch_size=torch.Size([E]))
+            t = stack_of[g]
+            if t is not None:
+                sub = t._reset(empty, sub) if first else t._call(sub)
+            return {k: sub.get(k) for k in sensors}
+
+        for g in range(groups):
+            start(g)
+        td = reset(list(range(groups)), full=True)
+        src = {k: td.get(k) for k in sensors}
+        views = [view(src, g, True) for g in range(groups)]
         stop = torch.tensor([0.0, -1.0])
-        for _ in range(steps):
+        while any(cell_of[g] is not None for g in range(groups)):
+            obs = {k: torch.cat([v[k] for v in views]) if groups > 1 else views[0][k] for k in sensors}
             action = actor(obs)
-            action[torch.from_numpy(~book.active)] = stop  # cars whose episode ended brake to a halt, off the books
+            idle = np.ones(n, dtype=bool)
+            for g in range(groups):
+                if book_of[g] is not None:
+                    idle[spans[g]] = ~book_of[g].active
+            action[torch.from_numpy(idle)] = stop  # cars whose episode has ended brake to a halt, off the books
             td = env.step(TensorDict._new_unsafe({"action": action}, batch_size=torch.Size([n])))
             nxt = td.get("next")
-            book.record(action, nxt, core.reason)
-            if not book.active.any():
-                break
-            obs = observe(nxt, False)
-        book.close(nxt, core.reason)
-        dt = float(core.dt)
-        out: list[list[dict[str, Any]]] = []
-        for c, d in enumerate(degs):
-            rows = []
-            for e in range(episodes):
-                i = c * episodes + e
-                rows.append({"policy": policy.name, "policy_fingerprint": policy.fingerprint, "track": track,
-                             "surface": surface_name, "corruption": d.name if not d.clean else metrics.CLEAN,
-                             "severity": 0 if d.clean else d.severity, "episode": e, "env_seed": env_seeds[e],
-                             "degradation_seed": deg_seeds[c][e] if deg_seeds[c] is not None else None, "max_steps": steps,
-                             **book.row(i, dt)})
-            out.append(rows)
-        return out
+            finished = []
+            lists = EpisodeBook.step_lists(action, nxt)
+            for g in range(groups):
+                book = book_of[g]
+                if book is None:
+                    continue
+                book.record_lists(lists, nxt, core.reason, rows=spans[g])
+                if not book.active.any() or max(book.steps) >= steps:
+                    book.close(nxt, core.reason, rows=spans[g])
+                    c, d = cell_of[g], degs[cell_of[g]]
+                    results[c] = [{"policy": policy.name, "policy_fingerprint": policy.fingerprint, "track": track,
+                                   "surface": surface_name, "corruption": d.name if not d.clean else metrics.CLEAN,
+                                   "severity": 0 if d.clean else d.severity, "episode": e, "env_seed": env_seeds[e],
+                                   "degradation_seed": seeds_of[g][e] if seeds_of[g] is not None else None,
+                                   "max_steps": steps, **book.row(e, dt)} for e in range(E)]
+                    cell_of[g], book_of[g], stack_of[g] = None, None, None
+                    finished.append(g)
+            restart = []
+            for g in finished:
+                if queue:
+                    start(g)
+                    restart.append(g)
+            fresh = reset(restart, full=False) if restart else None
+            fresh = {k: fresh.get(k) for k in sensors} if fresh is not None else None
+            src = {k: nxt.get(k) for k in sensors}
+            views = [view(fresh, g, True) if g in restart else
+                     view(src, g, False) if cell_of[g] is not None else {k: src[k][spans[g]] for k in sensors}
+                     for g in range(groups)]
+        return [r if r is not None else [] for r in results]
     finally:
         env.close()

@@ -198,64 +198,90 @@ class EpisodeBook:
         self.end: list[dict[str, Any] | None] = [None] * self.n
         self.active = np.ones(self.n, dtype=bool)
 
-    def record(self, action: Any, nxt: Any, reason: Sequence[int] | np.ndarray | None) -> np.ndarray:
+    def record(self, action: Any, nxt: Any, reason: Sequence[int] | np.ndarray | None, rows: slice | None = None) -> np.ndarray:
         """Book one step of every car still running from the step's ``action [N, A]`` and its
         ``"next"`` tensordict (reward, clean or plain ``state``, lap keys, done flags);
         ``reason [N]``: the env's termination reason codes (None: not known). Returns the cars
-        done at this step. Envs without a ``state`` or lap keys (the toy env) book what they have."""
-        n = self.n
-        a = action.reshape(n, -1)[:, 0].tolist()
-        rew = nxt.get("reward").reshape(n).tolist()
+        done at this step. Envs without a ``state`` or lap keys (the toy env) book what they have.
+        ``rows``: the batch rows of this book's cars (a slice of a bigger batch; None: all of it)."""
+        return self.record_lists(self.step_lists(action, nxt, self.trace), nxt, reason, rows)
+
+    @staticmethod
+    def step_lists(action: Any, nxt: Any, trace: bool = False) -> tuple:
+        """What :meth:`record_lists` reads from one step, as Python lists over the whole batch
+        (extracted once per step, then shared by the books of every group of cars)."""
+        from torcsrl.envs.sensors import STATE_SLOTS
+
+        total = nxt.get("done").numel()
+        a = action.reshape(total, -1)[:, 0].tolist()
+        rew = nxt.get("reward").reshape(total).tolist()
         st = nxt.get("state_clean", None)
         st = st if st is not None else nxt.get("state", None)
         if st is not None:
-            st = st.reshape(n, -1)
-            tp, v = st[:, self._i_tp].tolist(), st[:, self._i_v].tolist()
+            st = st.reshape(total, -1)
+            tp, v = st[:, STATE_SLOTS.index("trackPos")].tolist(), st[:, STATE_SLOTS.index("speedX_kmh")].tolist()
         else:
-            tp = v = [math.nan] * n
+            tp = v = [math.nan] * total
         lap_key, time_key = lap_keys(nxt)
-        lap = nxt.get(lap_key).reshape(n).tolist() if lap_key is not None else [0] * n
-        last = nxt.get(time_key).reshape(n).tolist() if time_key is not None else [0.0] * n
-        dfs = nxt.get(("info", "distFromStart")).reshape(n).tolist() if self.trace else None
-        done = nxt.get("done").reshape(n).tolist()
+        lap = nxt.get(lap_key).reshape(total).tolist() if lap_key is not None else [0] * total
+        last = nxt.get(time_key).reshape(total).tolist() if time_key is not None else [0.0] * total
+        dfs = nxt.get(("info", "distFromStart")).reshape(total).tolist() if trace else None
+        done = nxt.get("done").reshape(total).tolist()
+        return total, a, rew, tp, v, lap, last, dfs, done
+
+    def record_lists(self, lists: tuple, nxt: Any, reason: Sequence[int] | np.ndarray | None,
+                     rows: slice | None = None) -> np.ndarray:
+        """:meth:`record` from :meth:`step_lists` (this book's cars are ``rows`` of the batch)."""
+        total, a, rew, tp, v, lap, last, dfs, done = lists
+        off = 0 if rows is None else rows.start
         newly = []
         for i in np.flatnonzero(self.active).tolist():
-            self.steer[i].append(min(1.0, max(-1.0, a[i])))  # the env clips actions to [-1, 1]
-            self.ret[i] += rew[i]
-            self.tpos[i].append(tp[i])
-            self.speed[i].append(v[i])
+            j = off + i
+            self.steer[i].append(min(1.0, max(-1.0, a[j])))  # the env clips actions to [-1, 1]
+            self.ret[i] += rew[j]
+            self.tpos[i].append(tp[j])
+            self.speed[i].append(v[j])
             if dfs is not None:
-                self.s_hist[i].append(dfs[i])
+                self.s_hist[i].append(dfs[j])
             self.steps[i] += 1
-            if lap[i] > self.prev_lap[i]:
-                if last[i] > 0:  # 0: the lap was not timed (a random start's first, partial lap)
-                    self.lap_times[i].append(last[i])
-                self.prev_lap[i] = lap[i]
-            if done[i]:
+            if lap[j] > self.prev_lap[i]:
+                if last[j] > 0:  # 0: the lap was not timed (a random start's first, partial lap)
+                    self.lap_times[i].append(last[j])
+                self.prev_lap[i] = lap[j]
+            if done[j]:
                 newly.append(i)
         if newly:
-            self._end(nxt, reason, newly)
+            self._end(nxt, reason, newly, rows, total)
         return np.asarray(newly, dtype=np.int64)
 
-    def _end(self, nxt: Any, reason: Sequence[int] | np.ndarray | None, cars: Sequence[int]) -> None:
+    def _end(self, nxt: Any, reason: Sequence[int] | np.ndarray | None, cars: Sequence[int], rows: slice | None = None,
+             total: int | None = None) -> None:
         from torcsrl.envs.race import TERMINATION_REASONS
 
         n = self.n
+        total = n if total is None else total
+        rows = slice(0, total) if rows is None else rows
+
+        def col(t: torch.Tensor) -> list:
+            return t.reshape(total)[rows].tolist()
+
         info = nxt.get("info", None)
-        term = nxt.get("terminated").reshape(n).tolist()
-        trunc = nxt.get("truncated").reshape(n).tolist()
-        fin = info.get("finished").reshape(n).tolist() if info is not None else [False] * n
-        dist = info.get("distRaced").reshape(n).tolist() if info is not None else [math.nan] * n
+        term = col(nxt.get("terminated"))
+        trunc = col(nxt.get("truncated"))
+        fin = col(info.get("finished")) if info is not None else [False] * n
+        dist = col(info.get("distRaced")) if info is not None else [math.nan] * n
+        why_rows = list(np.asarray(reason).reshape(-1)[rows]) if reason is not None else None
         for i in cars:
-            why = TERMINATION_REASONS[int(reason[i])] if reason is not None else "terminated"
+            why = TERMINATION_REASONS[int(why_rows[i])] if why_rows is not None else "terminated"
             self.end[i] = {"terminated": bool(term[i]), "truncated": bool(trunc[i]), "finished": bool(fin[i]),
                            "distance_m": dist[i], "termination": why if term[i] else ""}
             self.active[i] = False
 
-    def close(self, nxt: Any, reason: Sequence[int] | np.ndarray | None) -> None:
+    def close(self, nxt: Any, reason: Sequence[int] | np.ndarray | None, rows: slice | None = None) -> None:
         """End the books of the cars still running (the step cap ran out) at the last step."""
         if self.active.any():
-            self._end(nxt, reason, np.flatnonzero(self.active).tolist())
+            total = nxt.get("done").numel()
+            self._end(nxt, reason, np.flatnonzero(self.active).tolist(), rows, total)
 
     def row(self, i: int, dt: float) -> dict[str, Any]:
         """Car ``i``'s episode numbers (see :func:`run_cell`)."""

@@ -175,7 +175,7 @@ def _cell_degradation(cell: Cell) -> Degradation | None:
 
 
 def _run_group_task(cells: Sequence[Cell], policy: Any, cfg: dict[str, Any], config_hash: str,
-                    paths: Sequence[str]) -> list[dict[str, Any]]:
+                    paths: Sequence[str], max_cars: int | None = None) -> list[dict[str, Any]]:
     """Run cells that share a policy, a track and a surface as cars of one env (in a worker), write each
     cell's JSON atomically (the same record as :func:`_run_cell_task` would write); returns the records."""
     from torcsrl.evaluate.batched import run_batch
@@ -186,7 +186,7 @@ def _run_group_task(cells: Sequence[Cell], policy: Any, cfg: dict[str, Any], con
     c0 = cells[0]
     out = run_batch(pol, c0.track, None if c0.own_surface else c0.surface, [_cell_degradation(c) for c in cells],
                     episodes=cfg["episodes"], laps=cfg["laps"], seed=cfg["seed"], max_steps=cfg["max_steps"],
-                    env_kwargs=cfg["env_kwargs"])
+                    env_kwargs=cfg["env_kwargs"], max_cars=max_cars)
     wall = time.perf_counter() - t0
     records = []
     for cell, rows, path in zip(cells, out, paths):
@@ -215,20 +215,21 @@ def _run_cell_task(cell: Cell, policy: Any, cfg: dict[str, Any], config_hash: st
 
 def _run_task(task: tuple) -> list[tuple[Cell, dict[str, Any]]]:
     """One task of :func:`plan_tasks`: [(cell, record)]."""
-    cells, pspec, ccfg, config_hash, paths = task
+    cells, pspec, ccfg, config_hash, paths, max_cars = task
     if len(cells) == 1:
         return [(cells[0], _run_cell_task(cells[0], pspec, ccfg, config_hash, paths[0]))]
-    return list(zip(cells, _run_group_task(cells, pspec, ccfg, config_hash, paths)))
+    return list(zip(cells, _run_group_task(cells, pspec, ccfg, config_hash, paths, max_cars)))
 
 
 def plan_tasks(todo: Sequence[tuple[Cell, Any, Path]], batchable: set[str], episodes: int, batch_cars: int,
                workers: int = 1) -> list[tuple[list[Cell], Any, list[str]]]:
     """Group the cells to run into tasks: the cells of a batchable policy that share a track and a
-    surface become one task of at most ``batch_cars`` cars (``episodes`` per cell), split further
-    while there are fewer tasks than ``workers``; every other cell is a task of its own."""
+    surface become one task (one env of at most ``batch_cars`` cars, refilled cell after cell: see
+    :func:`torcsrl.evaluate.batched.run_batch`), split further while there are fewer tasks than
+    ``workers``; every other cell (every cell when ``batch_cars`` is 1 or below ``episodes``) is a task of its own."""
     groups: dict[tuple, list[tuple[Cell, Any, Path]]] = {}
     tasks: list[list[tuple[Cell, Any, Path]]] = []
-    per = max(1, int(batch_cars) // max(1, int(episodes)))
+    per = 1 << 30 if int(batch_cars) >= int(episodes) and int(batch_cars) > 1 else 1
     for item in todo:
         cell = item[0]
         if cell.policy in batchable and per > 1 and cell.policy != RANDOM:
@@ -409,12 +410,12 @@ def run_report(cfg: ReportConfig, out_dir: str | Path, cache_dir: str | Path | N
 
     if workers == 1:
         for cells, pspec, paths in tasks:
-            for cell, rec in _run_task((cells, pspec, ccfg, config_hash, paths)):
+            for cell, rec in _run_task((cells, pspec, ccfg, config_hash, paths, int(cfg.batch_cars))):
                 _done(cell, rec)
     elif tasks:
         ex = cf.ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"), initializer=_worker_init)
         try:
-            futs = [ex.submit(_run_task, (cells, pspec, ccfg, config_hash, paths)) for cells, pspec, paths in tasks]
+            futs = [ex.submit(_run_task, (cells, pspec, ccfg, config_hash, paths, int(cfg.batch_cars))) for cells, pspec, paths in tasks]
             for fut in cf.as_completed(futs):
                 for cell, rec in fut.result():
                     _done(cell, rec)
