@@ -1,26 +1,41 @@
 """Batched episodes: the episodes of several cells of one (policy, track, surface) as cars of ONE env.
 
 A report cell is ``episodes`` episodes of one degradation at one severity; the cells that share a
-policy and a track differ only in the weather. :func:`run_batch` drives all of them at once:
-one :func:`torcsrl.envs.make_env` with ``num_cars = cells × episodes`` (N cars in one pybullet
-world, the physics vectorised over them), the policy once per step on the whole batch, and each
-cell's degradation stack once per step on its own rows.
+policy and a track differ only in the weather. :func:`run_batch` drives them as cars of ONE
+:func:`torcsrl.envs.make_env` (N cars in one pybullet world, the physics vectorised over them): the
+cars form groups of ``episodes`` cars, each group drives one cell, and a group whose episodes have
+all ended is reset (alone) to drive the next cell waiting. The policy runs once per step on the whole
+batch, each cell's degradation stack once per step on its group's rows.
 
-Every car keeps the seeds of the one-car path (:func:`torcsrl.evaluate.protocol.run_cell`), so a
-batched episode is the SAME episode, bit for bit (tested in ``tests/test_batched_eval.py``):
+Every car keeps the seeds of the one-car path (:func:`torcsrl.evaluate.protocol.run_cell`), and a
+batched episode is the SAME episode, bit for bit (tested in ``tests/test_batched_eval.py``), as long
+as no two cars of the batch touch the ground with their chassis in the same physics substep (the exact
+relation; see *The one exception* below):
 
-* **starts**: car ``i`` is reset alone, right after the env's generator is seeded with its
-  episode's env seed ``seed_for(seed, "env", track, surface, e)`` — the draws a one-car env
-  seeded so makes (random start, spawn jitter);
+* **starts**: a reset draws each car's start (random start arc length, spawn jitter) from the
+  generator a one-car env seeded with its episode's env seed ``seed_for(seed, "env", track,
+  surface, e)`` would use (:class:`_PerCarDraws`);
 * **weather**: each cell's stack draws per row (:meth:`torcsrl.transforms.Degradation.set_row_seeds`),
   row ``e`` from the generator a one-car stack seeded with ``seed_for(seed, "degradation", name,
   severity, e)`` would use;
-* **physics**: each car's dynamics do not depend on the other cars (they never collide; the numpy
-  and the per-car backends compute the same numbers);
+* **physics**: a car's dynamics do not depend on the other cars (they never collide; the numpy and
+  the per-car backends compute the same numbers), and every car is located on its track by the
+  one-car env's projection (``RaceCore.scalar_locate_max_cars``: the vectorised one may put a car
+  standing exactly on the start line at s = L - ε instead of 0);
 * **policy**: a batched matrix product does not give the same float32 bits as one row at a time
   (other kernels, other summation orders), so the actor runs as one matrix-vector product per row
   (:func:`row_linear`: ``baddbmm`` over the rows, equal to the one-car ``F.linear``);
 * **books**: the one :class:`~torcsrl.evaluate.protocol.EpisodeBook` of the one-car path.
+
+The exceptions: a chassis that touches the ground (hard cornering or braking at the suspension's bump
+stop, a car leaving the road; the car model gives the body a collision box) makes a contact that pybullet's solver solves
+together with the contacts other cars have in the same substep, so those cars' numbers differ from
+their one-car runs in the last bits from then on, and their episodes diverge like any chaotic
+trajectory (``minimumSolverIslandSize=1`` does not separate them). On the issue #17 grid this touched
+none of the 248 kidney episodes and some rallycross ones (``benchmarks/report_throughput.py`` counts
+them); the seeds, and with them common random numbers, are unaffected. And when the chord-by-chord
+walk that locates a car on its track fails for one car (far off the road), ``RaceCore`` locates every
+car of that step by the vectorised projection, which may differ from the walk in the last bits.
 
 Supported policies: checkpoint actors on vector observations (rangefinder, state), which is what a
 robustness grid drives thousands of times. Others (the expert, scripted drivers, the random
