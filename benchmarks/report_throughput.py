@@ -56,7 +56,7 @@ def main(argv=None) -> int:
     ap.add_argument("--laps", type=int, default=1)
     ap.add_argument("--max-steps", type=int, default=None, help="step cap per episode (default: the protocol's, a full lap)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--max-cars", type=int, default=None, help="cars of the batched env (default: the report's batch_cars)")
+    ap.add_argument("--max-cars", type=int, default=64, help="cars of the batched env (the report's batch_cars default, 64)")
     a = ap.parse_args(argv)
     torch.set_num_threads(1)
     pol = load_policy(a.policy)

@@ -32,7 +32,7 @@ stop, a car leaving the road; the car model gives the body a collision box) make
 together with the contacts other cars have in the same substep, so those cars' numbers differ from
 their one-car runs in the last bits from then on, and their episodes diverge like any chaotic
 trajectory (``minimumSolverIslandSize=1`` does not separate them). On the issue #17 grid this touched
-none of the 248 kidney episodes and some rallycross ones (``benchmarks/report_throughput.py`` counts
+0 (248 cars at once) and 19 (64 cars, refilled) of the 248 kidney episodes, and some rallycross ones (``benchmarks/report_throughput.py`` counts
 them); the seeds, and with them common random numbers, are unaffected. And when the chord-by-chord
 walk that locates a car on its track fails for one car (far off the road), ``RaceCore`` locates every
 car of that step by the vectorised projection, which may differ from the walk in the last bits.

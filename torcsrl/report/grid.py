@@ -88,7 +88,7 @@ class ReportConfig:
     env_kwargs: dict[str, Any] = field(default_factory=dict)
     workers: int = 1
     n_boot: int = 1000
-    batch_cars: int = 512
+    batch_cars: int = 64
 
     @classmethod
     def from_mapping(cls, d: Mapping[str, Any]) -> "ReportConfig":
