@@ -1,6 +1,6 @@
 """Throughput of the sensor degradations (torcsrl.transforms), one CPU thread.
 
-    python benchmarks/degradation_throughput.py [--peers DIR] [--reps N]
+    python benchmarks/degradation_throughput.py [--peers DIR] [--reps N] [--env-reps N] [--only-env]
 
 Prints three tables:
 
@@ -12,9 +12,11 @@ Prints three tables:
 2. rangefinder / state: the cost per env-step of the full stack (every rangefinder degradation
    at severity 3 composed, likewise for state) at B=256 and B=1 — goal <= 20 us per env-step at
    B=256 — and each degradation alone.
-3. in the race env, one car (rangefinder + state): the env step with each weather preset and with
-   the full rangefinder and state stacks, against the bare env step — the goal is a degradation
-   stack costing <= 15 % of the env's own step at B=1 (wall clock, median of ``--reps``).
+3. in the race env, one car (rangefinder + state): the env step with each weather preset, each
+   rangefinder step-noise degradation alone and the full rangefinder and state stacks, against the
+   bare env step — the goal is one rangefinder degradation costing <= 15 % of the env's own step at
+   B=1 (median of ``--env-reps`` rounds of 100 steps, the envs interleaved round by round so that a
+   shared machine slows them alike; ``--only-env`` prints this table alone).
 4. peers (albumentations, imagecorruptions), per frame, only where importable. ``--peers DIR``
    (or $TORCSRL_PEERS) appends a folder of separately installed packages to ``sys.path``.
 
@@ -107,45 +109,82 @@ def bench_vector(sensor: str, key: str, data_fn, reps: int) -> tuple[list, list]
 
 
 # ------------------------------------------------------------------------ peers
-def bench_env_b1(reps: int, steps: int = 300) -> list[tuple]:
+def load_baseline(folder: str):
+    """Another copy of ``torcsrl/transforms`` (e.g. ``git archive <rev> torcsrl/transforms | tar -x -C DIR``, then
+    ``DIR/torcsrl/transforms``) imported as the package ``baseline_transforms``: the in-env table then times its
+    stacks beside this checkout's, interleaved in one process on the same env code."""
+    import importlib.util
+
+    init = Path(folder) / "__init__.py"
+    spec = importlib.util.spec_from_file_location("baseline_transforms", init, submodule_search_locations=[str(folder)])
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["baseline_transforms"] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def bench_env_b1(reps: int, steps: int = 100, baseline=None) -> list[tuple]:
     """(stack, degradations acting on the env's keys, us per env step, overhead vs the bare env) in the race
-    env, B=1, wall clock. Presets are built whole; their camera parts find no camera and pass."""
+    env, B=1. Presets are built whole; their camera parts find no camera and pass. Every env is built first,
+    then timed in turns (``reps`` rounds of ``steps`` steps each, the envs interleaved), so that other jobs
+    on a shared machine slow them alike; the median of the rounds, in ``CLOCK`` time."""
     from torcsrl.envs import make_env
     from torcsrl.transforms import DegradedEnv, make_preset
-
-    def per_step(env) -> float:
-        td = env.reset()
-        act = env.action_spec.zero()
-        act[..., -1] = 0.3  # some throttle: the car drives, episodes do not end in the timing window
-        td.set("action", act)
-        ts = []
-        for _ in range(reps):
-            t0 = time.perf_counter()
-            for _ in range(steps):
-                _, td = env.step_and_maybe_reset(td)
-                td.set("action", act)
-            ts.append((time.perf_counter() - t0) / steps)
-        return statistics.median(ts)
 
     stacks = {"(none)": None}
     for p in ("rain", "fog", "snow", "dust"):
         stacks[f"weather.{p}"] = lambda p=p: make_preset(p, 3, seed=0)
+    for n in ("rangefinder.noise", "rangefinder.dropout", "rangefinder.fog", "rangefinder.rain", "rangefinder.snow"):
+        stacks[n] = lambda n=n: make_degradation(n, 3, seed=0)
+    wrappers = {name: DegradedEnv for name in stacks}
+    if baseline is not None:  # the same stacks from the baseline copy, in its own DegradedEnv
+        for name in [k for k in stacks if k != "(none)"]:
+            if name.startswith("weather."):
+                stacks[f"{name} (baseline)"] = lambda p=name[8:]: baseline.make_preset(p, 3, seed=0)
+            else:
+                stacks[f"{name} (baseline)"] = lambda n=name: baseline.make_degradation(n, 3, seed=0)
+            wrappers[f"{name} (baseline)"] = baseline.DegradedEnv
     for sensor in ("rangefinder", "state"):
         stacks[f"{sensor} stack"] = lambda sensor=sensor: Compose(
             *[make_degradation(n, 3, seed=i) for i, n in enumerate(degradation_names(sensor))])
     stacks["rangefinder + state stacks"] = lambda: Compose(
         *[make_degradation(n, 3, seed=i) for i, n in enumerate(degradation_names("rangefinder") + degradation_names("state"))])
-    rows, bare = [], None
+    envs, tds, applied = {}, {}, {}
+    wrappers = {**{name: DegradedEnv for name in stacks}, **wrappers}
     for name, make in stacks.items():
         base = make_env(track="oval", sensors=("rangefinder", "state"), max_steps=100_000, seed=0)
-        env = base if make is None else DegradedEnv(base, make())
+        env = base if make is None else wrappers[name](base, make())
         present = set(base.observation_spec.keys())
-        n_deg = 0 if make is None else sum(1 for t in env.transform.modules()
-                                           if hasattr(t, "get_sim_state") and any(k in present for k in t.in_keys))
-        us = per_step(env) * 1e6
+        applied[name] = 0 if make is None else sum(1 for t in env.transform.modules()
+                                                   if hasattr(t, "get_sim_state") and any(k in present for k in t.in_keys))
+        td = env.reset()
+        act = env.action_spec.zero()
+        act[..., -1] = 0.3  # some throttle: the car drives, episodes end and reset now and then
+        td.set("action", act)
+        envs[name], tds[name] = env, (td, act)
+
+    def run(name: str) -> float:
+        env, (td, act) = envs[name], tds[name]
+        t0 = CLOCK()
+        for _ in range(steps):
+            _, td = env.step_and_maybe_reset(td)
+            td.set("action", act)
+        tds[name] = (td, act)
+        return (CLOCK() - t0) / steps
+
+    for name in envs:  # warm-up
+        run(name)
+    times: dict[str, list[float]] = {name: [] for name in envs}
+    for _ in range(reps):
+        for name in envs:
+            times[name].append(run(name))
+    for env in envs.values():
         env.close()
-        bare = us if bare is None else bare
-        rows.append((name, n_deg, us, (us - bare) / bare))
+    bare = statistics.median(times["(none)"]) * 1e6
+    rows = []
+    for name in envs:
+        us = statistics.median(times[name]) * 1e6
+        rows.append((name, applied[name], us, (us - bare) / bare))
     return rows
 
 
@@ -213,11 +252,29 @@ def bench_imagecorruptions(n: int) -> list[tuple]:
 
 
 # ------------------------------------------------------------------------ main
+def _env_table(a) -> None:
+    load = os.getloadavg()
+    print(f"\n## race env, one car, rangefinder + state: env step with a stack (goal: one rangefinder degradation "
+          f"<= {GOAL_B1_SHARE:.0%} of the env step; load average {load[0]:.2f} at the start)")
+    print(f"| {'stack':28s} | {'applied':>7s} | {'us per step':>11s} | {'overhead':>8s} | goal |")
+    print(f"|{'-' * 30}|{'-' * 9}|{'-' * 13}|{'-' * 10}|------|")
+    baseline = load_baseline(a.baseline) if a.baseline else None
+    if baseline is not None:
+        print(f"(baseline rows: the transforms of {a.baseline}, timed beside this checkout's in the same rounds)")
+    for name, n, us, share in bench_env_b1(a.env_reps, baseline=baseline):
+        ok = "" if n != 1 else ("ok" if share <= GOAL_B1_SHARE else "MISS")
+        print(f"| {name:28s} | {n:7d} | {us:11,.0f} | {share:8.0%} | {ok:4s} |")
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--reps", type=int, default=5, help="timed calls per batch-256 case")
     ap.add_argument("--peers", default=os.environ.get("TORCSRL_PEERS"), help="folder with peer packages")
     ap.add_argument("--no-peers", action="store_true")
+    ap.add_argument("--env-reps", type=int, default=30, help="rounds of the in-env table (100 steps per env each)")
+    ap.add_argument("--only-env", action="store_true", help="print only the in-env table (B=1 in the race env)")
+    ap.add_argument("--baseline", default=None, help="a torcsrl/transforms folder of another revision: its stacks timed beside "
+                                                      "these in the in-env table (see load_baseline)")
     ap.add_argument("--wall", action="store_true", help="wall-clock instead of CPU time")
     a = ap.parse_args(argv)
     if a.wall:
@@ -230,6 +287,10 @@ def main(argv=None) -> None:
     clock = "wall clock" if a.wall else "process CPU time"
     print(f"torch {torch.__version__}, threads={torch.get_num_threads()}, frames {H}x{W}, severity 3, {clock}")
 
+    if a.only_env:
+        _env_table(a)
+        print(f"\n(total {time.perf_counter() - t_start:.0f} s wall; one thread; a shared machine adds noise)")
+        return
     print(f"\n## camera: images/s (goal >= {GOAL_IMG_S:,} at step B=256)")
     print(f"| {'degradation':22s} | {'step B=1':>9s} | {'step B=256':>10s} | {'fresh B=256':>11s} | goal |")
     print(f"|{'-' * 24}|{'-' * 11}|{'-' * 12}|{'-' * 13}|------|")
@@ -255,12 +316,7 @@ def main(argv=None) -> None:
     for name, u256, u1 in singles:
         print(f"| {name:22s} | {u256:13,.0f} | {u1:11,.0f} |")
 
-    print(f"\n## race env, one car, rangefinder + state: env step with a stack (goal: stack <= {GOAL_B1_SHARE:.0%} of the env step)")
-    print(f"| {'stack':28s} | {'applied':>7s} | {'us per step':>11s} | {'overhead':>8s} | goal |")
-    print(f"|{'-' * 30}|{'-' * 9}|{'-' * 13}|{'-' * 10}|------|")
-    for name, n, us, share in bench_env_b1(a.reps):
-        ok = "" if name == "(none)" else ("ok" if share <= GOAL_B1_SHARE else "MISS")
-        print(f"| {name:28s} | {n:7d} | {us:11,.0f} | {share:8.0%} | {ok:4s} |")
+    _env_table(a)
 
     if not a.no_peers:
         for d in [a.peers, "/tmp/peers_albu", "/tmp/peers"]:

@@ -374,12 +374,10 @@ def make_collector(cfg: DictConfig, env: EnvBase, policy) -> StepCollector | Mul
 # validation
 # ---------------------------------------------------------------------------------------
 def _lap_keys(td: TensorDictBase) -> tuple:
-    """(completed-laps key, last-lap-time key) of an env's output: the race env's ``info`` entries
-    or the toy env's ``laps`` / ``lap_time``; ``None`` where absent."""
-    keys = td.keys(include_nested=True)
-    if ("info", "lap") in keys:
-        return ("info", "lap"), ("info", "lastLapTime")
-    return ("laps" if "laps" in keys else None), ("lap_time" if "lap_time" in keys else None)
+    """(completed-laps key, last-lap-time key): :func:`torcsrl.evaluate.protocol.lap_keys`."""
+    from torcsrl.evaluate.protocol import lap_keys
+
+    return lap_keys(td)
 
 
 @torch.no_grad()
@@ -405,18 +403,18 @@ def validate_all(envs: dict[str, EnvBase], policy, episodes: int, max_steps: int
 
 @torch.no_grad()
 def validate(env: EnvBase, policy, episodes: int, max_steps: int) -> dict[str, float]:
-    """Summers's protocol: deterministic policy, no noise, nothing stored, no updates."""
+    """Summers's protocol: deterministic policy, no noise, nothing stored, no updates. Each episode is
+    :func:`torcsrl.evaluate.protocol.drive_episode`, the one episode loop evaluate and report use too
+    (lap accounting, step cap, termination); the return is the float64 sum of the step rewards."""
+    from torcsrl.evaluate.protocol import drive_episode
+
     rewards, laps, lap_times = [], [], []
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         for _ in range(episodes):
-            ro = env.rollout(max_steps, policy, break_when_any_done=True)
-            rewards.append(float(ro["next", "reward"].sum()))
-            lap_key, time_key = _lap_keys(ro["next"])
-            nxt_laps = ro["next"].get(lap_key, torch.zeros(ro.shape + (1,), dtype=torch.long)).reshape(-1)
-            laps.append(int(nxt_laps[-1]))
-            prev = torch.cat([torch.zeros(1, dtype=nxt_laps.dtype), nxt_laps[:-1]])
-            if time_key is not None:
-                lap_times += ro["next", time_key].reshape(-1)[nxt_laps > prev].tolist()
+            book, _ = drive_episode(env, policy, 1, max_steps)
+            rewards.append(book.ret[0])
+            laps.append(book.prev_lap[0])
+            lap_times += book.lap_times[0]
     return {
         "eval/reward": sum(rewards) / len(rewards),
         "eval/laps": sum(laps) / len(laps),

@@ -114,6 +114,10 @@ class RaceCore:
         seed: seed of the env's random generator (tracks, surfaces, spawn).
     """
 
+    #: Cars followed one by one in plain Python up to this many (an instance may raise it: the batched
+    #: evaluation does, so that each car is located exactly as a one-car env locates it).
+    scalar_locate_max_cars: int = SCALAR_LOCATE_MAX_CARS
+
     def __init__(
         self,
         track: str | Sequence[str] = "road_flow",
@@ -454,7 +458,7 @@ class RaceCore:
         origin = self.track_origins[self.slot]  # [N, 2]
         pos = fleet.pos[:, :2] - origin  # in each car's track frame
         wheels = fleet.wheel_xy - origin[:, None, :]  # [N, 4, 2]
-        if self.n <= SCALAR_LOCATE_MAX_CARS:
+        if self.n <= self.scalar_locate_max_cars:
             ids = self._locate_scalar(pos, wheels, fleet.yaw)
             if ids is not None:
                 fleet.set_wheel_surfaces(ids)

@@ -31,6 +31,7 @@ from ._base import (
     LeanTransformedEnv,
     derive_seed,
     seed_degradations,
+    seed_degradation_rows,
 )
 from .camera import (
     Darkness,
@@ -84,6 +85,7 @@ __all__ = [
     "SENSOR_KEYS",
     "derive_seed",
     "seed_degradations",
+    "seed_degradation_rows",
     # rangefinder
     "BeamDegradation",
     "BeamNoise",

@@ -41,7 +41,7 @@ from collections.abc import Sequence
 from typing import Any, ClassVar
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Composite
 from torchrl.envs import Compose, EnvBase, Transform, TransformedEnv
 
@@ -53,6 +53,7 @@ __all__ = [
     "SENSOR_KEYS",
     "derive_seed",
     "seed_degradations",
+    "seed_degradation_rows",
 ]
 
 #: The observation keys the env produces, by sensor group.
@@ -63,6 +64,8 @@ SENSOR_KEYS: dict[str, tuple[str, ...]] = {
 }
 
 _MASK64 = (1 << 64) - 1
+#: the CPU device (one object: the one-env hot path tests identity, not equality)
+_CPU = torch.device("cpu")
 
 
 def _splitmix64(x: int) -> int:
@@ -151,6 +154,8 @@ class Degradation(Transform):
     temporal: ClassVar[bool] = False
     #: has per-episode draws (redrawn only for the envs being reset)
     episodic: ClassVar[bool] = False
+    #: one generator per env row (:meth:`set_row_seeds`), or None
+    _row_generators: list | None = None
 
     def __init__(
         self,
@@ -261,20 +266,55 @@ class Degradation(Transform):
             self._dev_generators[device] = g
         return g
 
+    def set_row_seeds(self, seeds: Sequence[int] | None) -> None:
+        """One generator per env along the first batch dimension (None: back to the one generator).
+
+        Row ``i`` of a batch ``[N, ...]`` then draws exactly what a copy of this transform on ONE
+        env (batch ``[]``), seeded with ``seeds[i]``, draws: every draw of shape ``[N, *rest]`` is
+        ``[N]`` draws of shape ``rest``, one from each row's generator. The batched evaluation
+        (:mod:`torcsrl.evaluate.batched`) drives the episodes of a cell as rows of one batch this
+        way, and each keeps the weather of its own seed (common random numbers). CPU only.
+        """
+        self._row_generators = None if seeds is None else [
+            torch.Generator().manual_seed(int(s) & ((1 << 63) - 1)) for s in seeds]
+
+    def _rows(self, shape, device) -> list | None:
+        rows = self._row_generators
+        if rows is None or device is None or torch.device(device).type != "cpu":
+            return None
+        shape = tuple(shape)
+        if not shape or shape[0] != len(rows):
+            raise RuntimeError(f"{type(self).__name__}: {len(rows)} row generators for a draw of shape {shape}")
+        return rows
+
     def rand(self, shape, device) -> torch.Tensor:
+        if self._row_generators is None and device is _CPU:  # the hot path of one env
+            return torch.rand(shape, generator=self._generator)
+        rows = self._rows(shape, device)
+        if rows is not None:
+            return torch.stack([torch.rand(tuple(shape)[1:], generator=g) for g in rows])
         return torch.rand(shape, generator=self._gen(device), device=device)
 
     def randn(self, shape, device) -> torch.Tensor:
+        if self._row_generators is None and device is _CPU:
+            return torch.randn(shape, generator=self._generator)
+        rows = self._rows(shape, device)
+        if rows is not None:
+            return torch.stack([torch.randn(tuple(shape)[1:], generator=g) for g in rows])
         return torch.randn(shape, generator=self._gen(device), device=device)
 
     def randint(self, low: int, high: int, shape, device) -> torch.Tensor:
+        rows = self._rows(shape, device)
+        if rows is not None:
+            return torch.stack([torch.randint(low, high, tuple(shape)[1:], generator=g) for g in rows])
         return torch.randint(low, high, shape, generator=self._gen(device), device=device)
 
     # ------------------------------------------------------------------ exact resume
     def get_sim_state(self) -> dict:
         """The generator and the running per-env state (episode draws, temporal buffers) as
         tensors and plain values, for a checkpoint (``weights_only`` loadable)."""
-        return {"generator": self._generator.get_state(), "state": _export_tree(self._state)}
+        st = self._state if self._state is None else {k: v for k, v in self._state.items() if k != "_np"}  # no caches
+        return {"generator": self._generator.get_state(), "state": _export_tree(st)}
 
     def set_sim_state(self, state: dict) -> None:
         """Restore :meth:`get_sim_state`: the next calls draw and degrade exactly as the saved
@@ -289,6 +329,7 @@ class Degradation(Transform):
         g.set_state(self._generator.get_state())
         other._generator = g
         other._dev_generators = {}
+        other._row_generators = None
         other._state = None
         other._device_ladder = {}
         return other
@@ -324,6 +365,7 @@ class Degradation(Transform):
         return st
 
     def _redraw(self, st: dict, mask: torch.Tensor) -> None:
+        st.pop("_np", None)  # cached per-env parameters (the fused one-env path) are redrawn too
         fresh = self._draw_episode(st["_B"], st["_dev"])
         nb = len(st["_B"])
         for k, v in fresh.items():
@@ -340,7 +382,7 @@ class Degradation(Transform):
     def bview(v: torch.Tensor, x: torch.Tensor, nb: int, trailing: int = 0) -> torch.Tensor:
         """``v`` of shape [*B, *t] (``trailing`` = len(t)) viewed to broadcast against ``x``."""
         extra = x.ndim - v.ndim
-        if extra <= 0:
+        if extra <= 0 or (v.ndim == 0 and v.dtype == x.dtype):  # a scalar broadcasts as it is (one env)
             return v
         shape = v.shape[:nb] + (1,) * extra + v.shape[nb:]
         return v.reshape(shape)
@@ -361,8 +403,9 @@ class Degradation(Transform):
             self.in_keys = keys
             self.out_keys = list(keys)
         pairs = []
+        plain = _plain(td)
         for in_key, out_key in zip(self.in_keys, self.out_keys):
-            x = td.get(in_key, None)
+            x = plain.get(in_key) if plain is not None and isinstance(in_key, str) else td.get(in_key, None)
             if x is not None:
                 pairs.append((in_key, out_key, x))
             elif not (self.optional or self.missing_tolerance):
@@ -381,8 +424,13 @@ class Degradation(Transform):
         if not pairs:
             return td
         self._begin_step(st, reset)
+        plain = _plain(td)
         for in_key, out_key, x in pairs:
-            td.set(out_key, self._degrade(x, in_key, st, reset))
+            y = self._degrade(x, in_key, st, reset)
+            if plain is not None and isinstance(out_key, str) and y.shape == x.shape and y.dtype == x.dtype:
+                plain[out_key] = y  # same shape, dtype and device as the reading it replaces: no checks needed
+            else:
+                td.set(out_key, y)
         return td
 
     def _degrade(self, x: torch.Tensor, key, st: dict, reset: torch.Tensor | None) -> torch.Tensor:
@@ -503,6 +551,12 @@ class Degradation(Transform):
 
 
 # ---------------------------------------------------------------------------------------
+def _plain(td: TensorDictBase) -> dict | None:
+    """The entry dict of a plain ``TensorDict`` (read and written directly on the per-step hot path:
+    tensordict's checks cost more than a degradation of 19 floats at one env), else None."""
+    return td.__dict__.get("_tensordict") if type(td) is TensorDict and not td.is_locked else None
+
+
 def _export_tree(x: Any) -> Any:
     """A degradation's running state as checkpointable values: tensors cloned, ``torch.Size`` and
     ``torch.device`` tagged (weights-only loading accepts neither)."""
@@ -602,6 +656,15 @@ def _walk(obj) -> list[Degradation]:
     return found
 
 
+def seed_degradation_rows(obj: EnvBase | Transform, seeds: Sequence[int]) -> int:
+    """:func:`seed_degradations` per row: row ``i`` of every :class:`Degradation` in ``obj`` draws what
+    a one-env copy given ``seed_degradations(copy, seeds[i])`` would (see :meth:`Degradation.set_row_seeds`)."""
+    ts = _walk(obj)
+    for i, t in enumerate(ts):
+        t.set_row_seeds([derive_seed(s, "degradation", i) for s in seeds])
+    return len(ts)
+
+
 def seed_degradations(obj: EnvBase | Transform, seed: int) -> int:
     """Seeds every :class:`Degradation` in ``obj`` (a TransformedEnv or a Compose) with its own
     seed derived from ``seed`` and its position; returns the number seeded."""
@@ -633,8 +696,18 @@ class LeanTransformedEnv(TransformedEnv):
     per step (race env, one car: 373 -> 341 us with an empty stack, 439 -> 400 with one degradation).
     """
 
+    def _untouched(self) -> bool:
+        """:func:`_input_untouched` of the stack, worked out once per stack (the walk costs more than a
+        degradation at one env)."""
+        t = self.transform
+        key = (id(t), tuple(id(c) for c in t.transforms) if isinstance(t, Compose) else ())
+        cached = self.__dict__.get("_untouched_cache")
+        if cached is None or cached[0] != key:
+            cached = self.__dict__["_untouched_cache"] = (key, _input_untouched(t))
+        return cached[1]
+
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        if "_step" in tensordict.keys() or not _input_untouched(self.transform):
+        if "_step" in tensordict.keys() or not self._untouched():
             return super()._step(tensordict)
         next_preset = tensordict.get("next", None)
         next_tensordict = self.base_env._step(tensordict)

@@ -1,0 +1,82 @@
+"""Batched episodes (torcsrl.evaluate.batched): the cells of one policy and track driven as cars of one env give
+the one-car path's episodes, bit for bit, and the report's batched path writes the same cells. (The exact relation:
+bit-equal while no two cars touch the ground with their chassis in the same substep; these short episodes never do.
+benchmarks/report_throughput.py counts the episodes of a full grid where that happened.)"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+
+from torcsrl.evaluate import run_cell
+from torcsrl.evaluate.batched import RowActor, run_batch, supports_batch
+from torcsrl.policies import load_policy
+from torcsrl.report import ReportConfig, run_report
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    torch.set_num_threads(1)
+
+
+def _same(a, b) -> bool:
+    return a == b or (isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b))
+
+
+def _diff(rows_a, rows_b) -> list:
+    out = []
+    for ra, rb in zip(rows_a, rows_b, strict=True):
+        out += [(ra["corruption"], ra["severity"], ra["episode"], k, ra[k], rb[k]) for k in ra if not _same(ra[k], rb[k])]
+    return out
+
+
+def test_row_actor_equals_the_one_car_policy_row_for_row():
+    pol = load_policy("reference")
+    assert supports_batch(pol) and not supports_batch(load_policy("heuristic")) and not supports_batch(load_policy("random"))
+    g = torch.Generator().manual_seed(0)
+    obs = {k: torch.rand(37, *s, generator=g) * 100 for k, s in pol.obs_shapes.items()}
+    rows = RowActor(pol)(obs)
+    one = torch.stack([pol._act(*(obs[k][i] for k in pol.obs_keys)) for i in range(37)])  # one car: 1-D observations
+    assert torch.equal(rows, one)
+    # a plain batched forward is NOT bit-equal (other kernels): the reason RowActor exists
+    assert not torch.equal(pol._act(*(obs[k] for k in pol.obs_keys)), one)
+
+
+@pytest.mark.parametrize("start,max_cars", [("grid", None), ("random", None), ("random", 4)])
+def test_batched_cells_equal_the_one_car_path(start, max_cars):
+    """Clean, step noise, episode faults, a temporal fault and a weather preset; 2 episodes each: 12 cars at once, or
+    4 cars whose groups of 2 are reset to drive the next cell when theirs has ended (continuous batching)."""
+    pol = load_policy("reference")
+    degs = [None, "rangefinder.fog@3", "weather.rain@4", "state.latency@2", "rangefinder.stuck@5", "rangefinder.bias_scale@2"]
+    kw = dict(episodes=2, laps=1, seed=3, max_steps=150, env_kwargs={"start": start})
+    batched = run_batch(pol, "rallycross", None, degs, max_cars=max_cars, **kw)
+    assert [len(r) for r in batched] == [2] * len(degs)
+    for d, rows_b in zip(degs, batched):
+        rows_a, _ = run_cell(pol, "rallycross", None, d, **kw)
+        assert _diff(rows_a, rows_b) == [], d
+    # the grid is not trivial: the weather changed the driving, and random starts differ per episode
+    ret = [[r["return"] for r in rows] for rows in batched]
+    assert ret[1] != ret[0] and ret[2] != ret[0]
+    if start == "random":
+        assert ret[0][0] != ret[0][1]
+
+
+def test_batched_report_writes_the_same_cells_as_one_car_at_a_time(tmp_path):
+    cfg = dict(policies=["reference"], tracks=["kidney"], degradations=["rangefinder.dropout", "state.noise"], severities=[0, 3],
+               episodes=2, laps=1, max_steps=80, random_max_steps=30, workers=1, n_boot=50)
+    one = run_report(ReportConfig(**cfg, batch_cars=1), tmp_path / "one", verbose=False)
+    many = run_report(ReportConfig(**cfg, batch_cars=64), tmp_path / "many", verbose=False)
+    assert one["computed"] == many["computed"] == 4  # clean, 2 degradations, random
+
+    def cells(d):
+        rec = json.loads((d / "robustness.json").read_text())
+        return {(c["cell"]["policy"], c["cell"]["corruption"], c["cell"]["severity"]): c["rows"] for c in rec["cells"]}
+
+    a, b = cells(tmp_path / "one"), cells(tmp_path / "many")
+    assert a.keys() == b.keys()
+    for k in a:
+        assert a[k] == b[k], k
+    assert many["summary"]["policies"]["reference"]["mrr"] == one["summary"]["policies"]["reference"]["mrr"]

@@ -1,0 +1,266 @@
+"""Batched episodes: the episodes of several cells of one (policy, track, surface) as cars of ONE env.
+
+A report cell is ``episodes`` episodes of one degradation at one severity; the cells that share a
+policy and a track differ only in the weather. :func:`run_batch` drives them as cars of ONE
+:func:`torcsrl.envs.make_env` (N cars in one pybullet world, the physics vectorised over them): the
+cars form groups of ``episodes`` cars, each group drives one cell, and a group whose episodes have
+all ended is reset (alone) to drive the next cell waiting. The policy runs once per step on the whole
+batch, each cell's degradation stack once per step on its group's rows.
+
+Every car keeps the seeds of the one-car path (:func:`torcsrl.evaluate.protocol.run_cell`), and a
+batched episode is the SAME episode, bit for bit (tested in ``tests/test_batched_eval.py``), as long
+as no two cars of the batch touch the ground with their chassis in the same physics substep (the exact
+relation; see *The one exception* below):
+
+* **starts**: a reset draws each car's start (random start arc length, spawn jitter) from the
+  generator a one-car env seeded with its episode's env seed ``seed_for(seed, "env", track,
+  surface, e)`` would use (:class:`_PerCarDraws`);
+* **weather**: each cell's stack draws per row (:meth:`torcsrl.transforms.Degradation.set_row_seeds`),
+  row ``e`` from the generator a one-car stack seeded with ``seed_for(seed, "degradation", name,
+  severity, e)`` would use;
+* **physics**: a car's dynamics do not depend on the other cars (they never collide; the numpy and
+  the per-car backends compute the same numbers), and every car is located on its track by the
+  one-car env's projection (``RaceCore.scalar_locate_max_cars``: the vectorised one may put a car
+  standing exactly on the start line at s = L - ε instead of 0);
+* **policy**: a batched matrix product does not give the same float32 bits as one row at a time
+  (other kernels, other summation orders), so the actor runs as one matrix-vector product per row
+  (:func:`row_linear`: ``baddbmm`` over the rows, equal to the one-car ``F.linear``);
+* **books**: the one :class:`~torcsrl.evaluate.protocol.EpisodeBook` of the one-car path.
+
+The exceptions: a chassis that touches the ground (hard cornering or braking at the suspension's bump
+stop, a car leaving the road; the car model gives the body a collision box) makes a contact that pybullet's solver solves
+together with the contacts other cars have in the same substep, so those cars' numbers differ from
+their one-car runs in the last bits from then on, and their episodes diverge like any chaotic
+trajectory (``minimumSolverIslandSize=1`` does not separate them). On the issue #17 grid this touched
+0 (248 cars at once) and 19 (64 cars, refilled) of the 248 kidney episodes, and some rallycross ones (``benchmarks/report_throughput.py`` counts
+them); the seeds, and with them common random numbers, are unaffected. And when the chord-by-chord
+walk that locates a car on its track fails for one car (far off the road), ``RaceCore`` locates every
+car of that step by the vectorised projection, which may differ from the walk in the last bits.
+
+Supported policies: checkpoint actors on vector observations (rangefinder, state), which is what a
+robustness grid drives thousands of times. Others (the expert, scripted drivers, the random
+baseline, camera actors) drive one car at a time through :func:`run_cell`
+(:func:`supports_batch` says which).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F  # noqa: N812
+from tensordict import TensorDict
+
+from torcsrl import metrics
+from torcsrl.evaluate.protocol import (Degradation, EpisodeBook, default_max_steps, env_sensors, parse_degradation,
+                                       seed_for)
+from torcsrl.policies import Policy
+
+__all__ = ["supports_batch", "row_linear", "RowActor", "run_batch"]
+
+
+class _PerCarDraws:
+    """Stands in for the env's generator during the one reset of all cars: the k-th draw of car ``i``
+    comes from ``gens[i]``, the generator a one-car env seeded with car ``i``'s episode seed has.
+
+    :meth:`torcsrl.envs.race.RaceCore.reset` draws, per car in car order, its start arc length
+    (``start="random"``) and its spawn jitter (``spawn_jitter``), all with ``uniform``; a track or a
+    surface drawn per episode (``integers``, ``random``) never happens here: a batch is one track on one
+    surface. Any other use fails loudly rather than give other numbers than the one-car path.
+    """
+
+    def __init__(self, gens: Sequence[np.random.Generator], per_car: int) -> None:
+        self.gens = list(gens)
+        self.per_car = int(per_car)
+        self.k = 0
+
+    def uniform(self, low: float = 0.0, high: float = 1.0, size: Any = None) -> Any:
+        if size is not None or self.per_car == 0:
+            raise RuntimeError("batched reset: unexpected draw from the env's generator")
+        g = self.gens[self.k // self.per_car]
+        self.k += 1
+        return g.uniform(low, high)
+
+    def __getattr__(self, name: str) -> Any:
+        raise RuntimeError(f"batched reset: the env drew with {name!r}; a batch must be one track on one surface")
+
+
+def supports_batch(policy: Policy) -> bool:
+    """True when ``policy`` can drive a batch and stay equal to its one-car self: a stateless checkpoint
+    actor (:class:`~torcsrl.agents.networks.DeterministicActor`) on vector observations only."""
+    from torcsrl.agents.networks import DeterministicActor
+    from torcsrl.policies import CheckpointPolicy
+
+    return (isinstance(policy, CheckpointPolicy) and type(policy.actor) is DeterministicActor
+            and not policy.actor.encoder.img_keys and type(policy).__call__ is CheckpointPolicy.__call__)
+
+
+def row_linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+    """``F.linear(x, weight, bias)`` for ``x [B, in]`` computed one row at a time (one ``baddbmm``),
+    so that row ``i`` has the bits ``F.linear(x[i:i+1], weight, bias)`` has, whatever ``B``."""
+    b = x.shape[0]
+    wt = weight.t()
+    return torch.baddbmm(bias.expand(b, 1, -1), x.unsqueeze(1), wt.expand(b, *wt.shape)).squeeze(1)
+
+
+class RowActor:
+    """A checkpoint policy's deterministic actor on a batch, row for row equal to the one-car policy."""
+
+    def __init__(self, policy: Policy) -> None:
+        if not supports_batch(policy):
+            raise ValueError(f"policy {policy.name!r} ({type(policy).__name__}) cannot drive a batch")
+        self.policy = policy
+        self.actor = policy.actor
+        self.keys = tuple(policy.obs_keys)
+        self.div = dict(policy.obs_divisors)
+
+    @torch.no_grad()
+    def __call__(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        act = self.actor
+        x = act.encoder(*(obs[k] / self.div[k] if k in self.div else obs[k] for k in self.keys))
+        *hidden, last = act._linears()
+        if x.shape[0] == 1:  # one car: exactly the one-car policy's kernels
+            for lin in hidden:
+                x = F.linear(x, lin.weight, lin.bias).relu_()
+            a = torch.tanh(F.linear(x, last.weight, last.bias))
+        else:
+            for lin in hidden:
+                x = row_linear(x, lin.weight, lin.bias).relu_()
+            a = torch.tanh(row_linear(x, last.weight, last.bias))
+        return a if act._unit else act.a_mid + act.a_half * a
+
+
+@torch.no_grad()
+def run_batch(policy: Policy, track: str, surface: str | None, degradations: Sequence[Any], *, episodes: int = 1,
+              laps: int = 1, seed: int = 0, max_steps: int | None = None, env_kwargs: Mapping[str, Any] | None = None,
+              max_cars: int | None = None) -> list[list[dict[str, Any]]]:
+    """Drive ``episodes`` episodes of every degradation in ``degradations`` (None / severity 0 = the
+    clean cell) on one track as cars of one env; returns one list of rows per degradation, each row
+    what :func:`torcsrl.evaluate.protocol.run_cell` returns for that cell and episode.
+
+    The env has ``max_cars`` cars (default: every episode at once), in groups of ``episodes`` cars:
+    a group drives the episodes of one cell side by side, and when all of them have ended it is reset
+    (alone) to drive the next cell waiting, so that cars do not idle while the slowest episode of the
+    grid finishes (continuous batching). Cars whose episode has ended brake to a halt until their
+    group restarts; their steps are not booked.
+    """
+    from collections import deque
+
+    from torcsrl.envs import make_env
+    from torcsrl.envs import tracks as _tracks
+    from torcsrl.transforms import seed_degradation_rows
+
+    degs: list[Degradation] = [parse_degradation(d) for d in degradations]
+    if not degs:
+        return []
+    E = int(episodes)
+    geom = _tracks.load(track, surface=surface)
+    surface_name = surface or geom.default_surface
+    hz = {**dict(env_kwargs or {}), **policy.env_overrides}.get("control_hz", 50.0)
+    steps = int(max_steps) if max_steps else default_max_steps(geom.length, laps, 1.0 / float(hz))
+    groups = max(1, min(len(degs), (int(max_cars) if max_cars else len(degs) * E) // E))
+    n = groups * E
+    kw = dict(env_kwargs or {})
+    kw.update({k: v for k, v in policy.env_overrides.items() if k != "sensors"})
+    sensors = env_sensors(policy)
+    env = make_env(track=track, surface=surface, lap_limit=int(laps), max_steps=steps, num_cars=n, batched=True,
+                   sensors=sensors, **kw)
+    try:
+        core = env.core
+        core.scalar_locate_max_cars = n  # every car located as a one-car env locates it (the same numbers)
+        env_seeds = [seed_for(seed, "env", track, surface_name, e) for e in range(E)]
+        per_car = int(core.start == "random") + int(core.spawn_jitter[0] != 0) + int(core.spawn_jitter[1] != 0)
+        actor = RowActor(policy)
+        empty = TensorDict({}, batch_size=[E])
+        spans = [slice(g * E, (g + 1) * E) for g in range(groups)]
+        queue = deque(range(len(degs)))
+        cell_of: list[int | None] = [None] * groups
+        stack_of: list[Any] = [None] * groups
+        book_of: list[EpisodeBook | None] = [None] * groups
+        seeds_of: list[list[int] | None] = [None] * groups
+        results: list[list[dict[str, Any]] | None] = [None] * len(degs)
+        dt = float(core.dt)
+
+        def reset(gs: list[int], full: bool) -> Any:
+            """Reset the cars of groups ``gs`` (all cars when ``full``), each with its episode's start draws."""
+            core.rng = _PerCarDraws([np.random.default_rng(env_seeds[i % E]) for g in gs for i in range(spans[g].start, spans[g].stop)],
+                                    per_car)
+            try:
+                if full:
+                    return env.reset()
+                mask = torch.zeros(n, 1, dtype=torch.bool)
+                for g in gs:
+                    mask[spans[g]] = True
+                return env.reset(TensorDict({"_reset": mask}, batch_size=[n]))
+            finally:
+                core.rng = np.random.default_rng(seed)
+
+        def start(g: int) -> None:
+            c = queue.popleft()
+            d = degs[c]
+            cell_of[g] = c
+            book_of[g] = EpisodeBook(E, laps)
+            seeds_of[g] = [seed_for(seed, "degradation", d.name, d.severity, e) for e in range(E)] if not d.clean else None
+            stack_of[g] = None
+            if not d.clean:
+                t = d.build()
+                seed_degradation_rows(t, seeds_of[g])
+                stack_of[g] = t
+
+        def view(src: Mapping[str, torch.Tensor], g: int, first: bool) -> dict[str, torch.Tensor]:
+            """Group ``g``'s rows of ``src`` (sensor -> [n, ...]) as its policy sees them (through its cell's stack)."""
+            sub = TensorDict._new_unsafe({k: src[k][spans[g]] for k in sensors}, batch_size=torch.Size([E]))
+            t = stack_of[g]
+            if t is not None:
+                sub = t._reset(empty, sub) if first else t._call(sub)
+            return {k: sub.get(k) for k in sensors}
+
+        for g in range(groups):
+            start(g)
+        td = reset(list(range(groups)), full=True)
+        src = {k: td.get(k) for k in sensors}
+        views = [view(src, g, True) for g in range(groups)]
+        stop = torch.tensor([0.0, -1.0])
+        while any(cell_of[g] is not None for g in range(groups)):
+            obs = {k: torch.cat([v[k] for v in views]) if groups > 1 else views[0][k] for k in sensors}
+            action = actor(obs)
+            idle = np.ones(n, dtype=bool)
+            for g in range(groups):
+                if book_of[g] is not None:
+                    idle[spans[g]] = ~book_of[g].active
+            action[torch.from_numpy(idle)] = stop  # cars whose episode has ended brake to a halt, off the books
+            td = env.step(TensorDict._new_unsafe({"action": action}, batch_size=torch.Size([n])))
+            nxt = td.get("next")
+            finished = []
+            lists = EpisodeBook.step_lists(action, nxt)
+            for g in range(groups):
+                book = book_of[g]
+                if book is None:
+                    continue
+                book.record_lists(lists, nxt, core.reason, rows=spans[g])
+                if not book.active.any() or max(book.steps) >= steps:
+                    book.close(nxt, core.reason, rows=spans[g])
+                    c, d = cell_of[g], degs[cell_of[g]]
+                    results[c] = [{"policy": policy.name, "policy_fingerprint": policy.fingerprint, "track": track,
+                                   "surface": surface_name, "corruption": d.name if not d.clean else metrics.CLEAN,
+                                   "severity": 0 if d.clean else d.severity, "episode": e, "env_seed": env_seeds[e],
+                                   "degradation_seed": seeds_of[g][e] if seeds_of[g] is not None else None,
+                                   "max_steps": steps, **book.row(e, dt)} for e in range(E)]
+                    cell_of[g], book_of[g], stack_of[g] = None, None, None
+                    finished.append(g)
+            restart = []
+            for g in finished:
+                if queue:
+                    start(g)
+                    restart.append(g)
+            fresh = reset(restart, full=False) if restart else None
+            fresh = {k: fresh.get(k) for k in sensors} if fresh is not None else None
+            src = {k: nxt.get(k) for k in sensors}
+            views = [view(fresh, g, True) if g in restart else
+                     view(src, g, False) if cell_of[g] is not None else {k: src[k][spans[g]] for k in sensors}
+                     for g in range(groups)]
+        return [r if r is not None else [] for r in results]
+    finally:
+        env.close()
