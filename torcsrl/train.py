@@ -558,7 +558,10 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         buffer.loads(str(cfg.buffer.load))
     if cfg.checkpoint.resume:
         counters = _resume(cfg, ckpt_dir, meta, loss, optim, policy, collector, env, eval_envs, buffer, run_dir)
-    loggers = make_loggers(cfg.logger.backends, run_dir, cfg.logger.exp_name, cfg.logger.wandb_project, cfg.logger.wandb_mode)
+    # cfg.logger["backends"], not .backends: Hydra's joblib launcher cloudpickles this module's functions by value (it
+    # runs as __main__), and an attribute named "backends" in a function that also uses `torch` makes cloudpickle try
+    # to pickle the torch.backends module object, which cannot be pickled.
+    loggers = make_loggers(cfg.logger["backends"], run_dir, cfg.logger.exp_name, cfg.logger.wandb_project, cfg.logger.wandb_mode)
     progress = Progress(total, enabled=bool(cfg.progress))
     multi = int(cfg.collector.num_workers) > 0
     print(f"[torcsrl] training {cfg.algo.name} on env={cfg.env.name} for {total} steps; outputs in {run_dir}", file=sys.stderr)
