@@ -181,3 +181,14 @@ def test_fused_adam_equals_torch_fused_adam_bit_for_bit():
     assert all(torch.equal(p, q) for p, q in zip(a.parameters(), b.parameters()))
     sa, sb = oa.state_dict()["state"], ob.state_dict()["state"]
     assert all(torch.equal(sa[k][n], sb[k][n]) for k in sa for n in sa[k])
+
+
+def test_random_shift_equals_a_crop_of_the_replicate_padded_frame_at_the_drawn_offset():
+    """The gather implementation against the plain definition: pad (replicate), crop H x W at the offset drawn."""
+    img = torch.randint(0, 256, (5, 3, 7, 11), dtype=torch.uint8)
+    out = random_shift(img, 3, generator=torch.Generator().manual_seed(4))
+    off = torch.randint(0, 7, (5, 2), generator=torch.Generator().manual_seed(4))
+    padded = torch.nn.functional.pad(img.float(), (3, 3, 3, 3), mode="replicate")
+    for i in range(5):
+        r, c = off[i].tolist()
+        assert torch.equal(out[i], padded[i, :, r:r + 7, c:c + 11].to(torch.uint8))
