@@ -74,6 +74,9 @@ def test_grip_aware_teacher_plans_its_braking_with_the_surface():
     td = TensorDict({"rangefinder": torch.tensor(r, dtype=torch.float32), "state": torch.tensor(st, dtype=torch.float32)}, [])
     with pytest.raises(ValueError, match="surfaceMu"):
         grip(td)
+    for bad in (0.0, -2.0, float("nan")):
+        with pytest.raises(ValueError, match="decel_per_mu"):
+            SensorDriver(decel_per_mu=bad)
 
 
 # ------------------------------------------------------------------ privileged distillation, end to end (tiny)

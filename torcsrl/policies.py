@@ -520,6 +520,8 @@ class SensorDriver(Policy):
                                  v_gain=(float(v_gain_free), float(v_gain_axis), float(v_gain_pos)), pedal_ramp_ms=float(pedal_ramp_ms),
                                  decel_per_mu=None if decel_per_mu is None else float(decel_per_mu))
         if decel_per_mu is not None:
+            if not math.isfinite(float(decel_per_mu)) or float(decel_per_mu) <= 0.0:
+                raise ValueError(f"SensorDriver decel_per_mu must be a finite braking rate > 0 [m/s^2 per unit mu], got {decel_per_mu}")
             self.spec = f"sensor-grip{float(decel_per_mu):g}"
         self.max_steer, self.wheel_r = float(prm.max_steer), float(prm.wheel_radius)
         self.keys = (rangefinder_key, state_key)

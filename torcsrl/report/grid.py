@@ -23,16 +23,15 @@ from torcsrl.evaluate import (PROTOCOL_VERSION, Degradation, EvalError, check_po
 from torcsrl.policies import BUILTIN_POLICIES, REFERENCE_POLICY, Policy, load_policy
 from torcsrl.utils.faults import OutputError, ignore_signals_in_worker, stop_pool, writable_folder
 
-__all__ = [
+__all__ = [  # this module's own names (the package re-exports them with results' and app's)
     "DEFAULT_DEGRADATIONS",
     "DEFAULT_TRACKS",
     "DEFAULT_SEVERITIES",
     "EFFECT_FAMILIES",
+    "Cell",
     "ReportConfig",
+    "prepare",
     "run_report",
-    "build_report",
-    "read_rows",
-    "main",
 ]
 
 #: The no-argument report: two held-out tracks (asphalt and dirt), four degradations over two
