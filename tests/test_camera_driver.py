@@ -90,7 +90,8 @@ def distilled(tmp_path_factory):
                                           "algo.encoder.cnn_kernels=[4,3,3]", "algo.encoder.cnn_strides=[2,2,1]", "algo.batch_size=16",
                                           "algo.actor_hidden=[32,32]", "demos.frames=120", "algo.bc_steps=10", "demos.dagger_rounds=1",
                                           "demos.dagger_frames=60", "eval.per_track=false", "eval.env.track=oval", "eval.max_steps=20",
-                                          "env.procedural.pool=2", f"run_dir={out}"])
+                                          "env.procedural.pool=2", "algo.aux_privileged=1.0", "logger.every_frames=5",
+                                          f"run_dir={out}"])
     res = train(cfg)
     return cfg, res, out
 
@@ -106,7 +107,8 @@ def test_distillation_trains_a_camera_student_from_a_privileged_teacher(distille
     meta = json.loads((out / "demos" / "demos.json").read_text())
     assert meta["teacher"] == "sensor_grip" and meta["frames"] == 120
     stored = {p.name.split(".")[0] for p in (out / "demos" / "rows").glob("*.memmap")}
-    assert {"pixels", "telemetry", "expert_action"} <= stored and not stored & {"rangefinder", "state"}  # only what the student sees
+    assert (out / "logs" / "dagger" / "scalars" / "loss" / "aux.csv").is_file()  # algo.aux_privileged > 0 logs its loss
+    assert {"pixels", "telemetry", "expert_action", "privileged"} <= stored and not stored & {"rangefinder", "state"}  # only what the student sees
     pol = CheckpointPolicy(latest_checkpoint(out / "checkpoints"))
     assert list(pol.obs_keys) == ["pixels", "telemetry"] and pol.env_overrides["sensors"] == ("pixels", "telemetry")
     assert pol.obs_shapes["pixels"] == (3, 32, 32) and set(pol.pipeline["scales"]) == {"telemetry"}

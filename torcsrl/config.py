@@ -78,6 +78,7 @@ RANGES: dict[str, tuple[float | None, float | None, str]] = {
     "demos.dagger_frames": (1, None, "closed"),
     "demos.dagger_beta": (0.0, 1.0, "closed"),
     "algo.bc_steps": (1, None, "closed"),
+    "algo.aux_privileged": (0.0, None, "closed"),
     "algo.smooth.temporal": (0.0, None, "closed"),
     "algo.smooth.spatial": (0.0, None, "closed"),
     "algo.smooth.spatial_sigma": (0.0, None, "closed"),

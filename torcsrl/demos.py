@@ -36,10 +36,14 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-__all__ = ["DemoError", "make_demo_env", "label_rollouts", "write_demos", "load_demos", "main"]
+__all__ = ["DemoError", "make_demo_env", "privileged_target", "label_rollouts", "write_demos", "load_demos", "main"]
 
 META = "demos.json"
-EXTRA_KEYS = ("expert_action",)
+EXTRA_KEYS = ("expert_action", "privileged")
+#: What ``privileged`` holds per demonstration row: the teacher's clean view of the road, normalised to ~[-1, 1] —
+#: the 19 rangefinder beams / 200 m (-1/200 off track), the angle to the track axis / pi, trackPos, and the friction
+#: under the wheels ``info/surfaceMu``. A camera student regresses it as an auxiliary target (``algo.aux_privileged``).
+PRIVILEGED_SLOTS: tuple[str, ...] = tuple(f"track_{i}" for i in range(19)) + ("angle", "trackPos", "surfaceMu")
 #: Teachers that label demonstrations (:func:`make_teacher`).
 TEACHERS = ("expert", "sensor", "sensor_grip")
 
@@ -59,8 +63,7 @@ def make_demo_env(cfg: DictConfig, seed: int):
     if cfg.env.name != "race":
         raise DemoError(f"demonstrations need the race env (the expert drives a track); env.name={cfg.env.name!r}")
     sensors = list(cfg.env.sensors)
-    teacher = str(cfg.demos.get("teacher", "expert")) if cfg.get("demos") else "expert"
-    need = ("rangefinder", "state") if teacher.startswith("sensor") else ("state",)
+    need = ("rangefinder", "state")  # the teacher's inputs and the rows' privileged targets (PRIVILEGED_SLOTS)
     missing = tuple(k for k in need if k not in sensors)
     extra = {"sensors": tuple(sensors) + missing} if missing else {}
     kw = env_kwargs(cfg.env, seed=int(seed), device="cpu", num_cars=1,
@@ -86,6 +89,15 @@ def make_teacher(name: str):
     if name == "sensor_grip":
         return SensorDriver(decel_per_mu=SensorDriver.GRIP_DECEL_PER_MU, rangefinder_key="rangefinder_clean", state_key="state_clean")
     raise DemoError(f"demos.teacher={name!r} is not known; allowed: {', '.join(TEACHERS)}")
+
+
+def privileged_target(td) -> torch.Tensor:
+    """The ``privileged`` row of a step (:data:`PRIVILEGED_SLOTS`) from the clean readings the teacher reads."""
+    from torcsrl.envs.sensors import RANGE_M
+
+    rf, st = td.get("rangefinder_clean"), td.get("state_clean")
+    mu = td.get(("info", "surfaceMu")).reshape(*st.shape[:-1], 1).to(st.dtype)
+    return torch.cat([rf / RANGE_M, st[..., :1] / np.pi, st[..., 1:2], mu], -1)
 
 
 def label_rollouts(env, frames: int, buffer, *, sigma_max: float = 0.0, learner=None, beta: float = 1.0, seed: int = 0,
@@ -125,6 +137,7 @@ def label_rollouts(env, frames: int, buffer, *, sigma_max: float = 0.0, learner=
             act = label + sigma * torch.randn(label.shape, generator=gen) if sigma > 0 else label.clone()
         td.set("action", act.clamp(-1.0, 1.0))
         td.set("expert_action", label.clamp(-1.0, 1.0))
+        td.set("privileged", privileged_target(td))
         td = env.step(td)
         buffer.extend(td)
         nxt = td.get("next")

@@ -24,13 +24,16 @@ __all__ = ["train"]
 
 
 def _mixed_sample(buffers: list, batch_size: int):
-    """A batch drawn from several buffers in proportion to their sizes."""
+    """A batch drawn from several buffers in proportion to their sizes (the keys they all hold)."""
     sizes = [len(b) for b in buffers]
     total = sum(sizes)
     counts = [batch_size * s // total for s in sizes]
     counts[0] += batch_size - sum(counts)
     parts = [b.sample(c) for b, c in zip(buffers, counts) if c > 0]
-    return parts[0] if len(parts) == 1 else torch.cat(parts, 0)
+    if len(parts) == 1:
+        return parts[0]
+    common = set(parts[0].keys(True, True)).intersection(*(p.keys(True, True) for p in parts[1:]))
+    return torch.cat([p.select(*common) for p in parts], 0)
 
 
 def train(cfg: DictConfig) -> dict[str, Any]:
@@ -38,7 +41,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     from torcsrl.agents._build import bc_step
     from torcsrl.agents.exploration import DeviceActorModule
     from torcsrl.agents.networks import split_obs_keys
-    from torcsrl.demos import EXTRA_KEYS, label_rollouts, make_demo_env
+    from torcsrl.demos import EXTRA_KEYS, PRIVILEGED_SLOTS, DemoError, label_rollouts, make_demo_env
     from torcsrl.objectives.common import ObsUnpacker
     from torcsrl.train import _run_dir, expected_meta, make_demos, make_eval_envs, make_train_env, pipeline_record, validate_all
     from torcsrl.utils.checkpoint import checkpoint_path, latest_checkpoint, prune, save_checkpoint
@@ -75,6 +78,15 @@ def train(cfg: DictConfig) -> dict[str, Any]:
             DeviceActorModule(actor, obs_keys, ["action"], device)
         learner = actor if device.type == "cpu" else (lambda *obs: actor(*(o.to(device) for o in obs)).cpu())
         buffers = [demos]
+        aux_w = float(cfg.algo.get("aux_privileged", 0.0))
+        aux = None
+        if aux_w > 0:  # auxiliary task: the encoder's features regress the teacher's privileged view (PRIVILEGED_SLOTS)
+            if "privileged" not in demos.extra_keys:
+                raise DemoError(f"algo.aux_privileged={aux_w} regresses the rows' privileged view, which the demonstrations hold no "
+                                f"column of (extra keys {demos.extra_keys}); allowed: demonstrations written by this version, or aux_privileged=0")
+            head = torch.nn.Linear(actor.encoder.out_dim, len(PRIVILEGED_SLOTS)).to(device)
+            optim["actor"].add_param_group({"params": list(head.parameters())})
+            aux = (head, aux_w)
         rounds = int(cfg.demos.dagger_rounds) if algo == "dagger" else 0
         steps_per_fit, batch_size, precision = int(cfg.algo.bc_steps), int(cfg.algo.batch_size), str(cfg.algo.precision)
         updates = frames = 0
@@ -98,7 +110,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
                                       "train/terminated": stats["terminated"]}, updates)
             t0 = time.perf_counter()
             for i in range(steps_per_fit):
-                bc, smooth = bc_step(net, optim, _mixed_sample(buffers, batch_size).to(device), precision, cfg.algo)
+                bc, smooth = bc_step(net, optim, _mixed_sample(buffers, batch_size).to(device), precision, cfg.algo, aux)
                 updates += 1
                 if updates % int(cfg.logger.every_frames) == 0:
                     log_metrics(loggers, {"loss/bc": float(bc), **{k: float(v) for k, v in smooth.items()}, "time/updates_per_s": (i + 1) / (time.perf_counter() - t0),

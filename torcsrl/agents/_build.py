@@ -239,16 +239,29 @@ def actor_regularisers(loss: LossModule, batch, action: torch.Tensor, q: torch.T
     return la, out
 
 
-def bc_step(loss: LossModule, optim: dict, batch, precision: str = "float32", reg: Any = None) -> tuple[torch.Tensor, dict]:
+def bc_step(loss: LossModule, optim: dict, batch, precision: str = "float32", reg: Any = None,
+            aux: tuple[torch.nn.Module, float] | None = None) -> tuple[torch.Tensor, dict]:
     """One behaviour-cloning step of the actor: ``|mu(s) - a*|^2`` on a demonstration batch, plus the CAPS
     terms of ``reg`` (the ``algo`` config; :func:`actor_regularisers`) when they are on.
 
-    Returns (the regression loss, the smoothness metrics ``loss/smooth_*``), detached.
+    ``aux=(head, weight)`` adds ``weight * mean |head(features) - privileged|^2``: the actor's encoder features
+    regress the teacher's privileged view stored in the batch (:data:`torcsrl.demos.PRIVILEGED_SLOTS`), an
+    auxiliary task that makes a camera encoder learn the road's geometry; the head is not part of the actor.
+
+    Returns (the regression loss, the smoothness metrics ``loss/smooth_*`` and ``loss/aux``), detached.
     """
     with precision_context(precision, batch.device or "cpu"):
-        action = loss.actor_network(*loss.obs(batch))
+        actor = loss.actor_network
+        obs = loss.obs(batch)
+        feats = actor.encoder(*obs) if aux is not None else None
+        action = actor(*obs) if aux is None else actor.act(feats)
         bc = (action.float() - batch.get("expert_action")).pow(2).sum(-1).mean()
         total, extra = (bc, {}) if reg is None else actor_regularisers(loss, batch, action, None, bc, reg)
+        if aux is not None:
+            head, weight = aux
+            la = (head(feats).float() - batch.get("privileged")).pow(2).mean()
+            total = total + float(weight) * la
+            extra = {**extra, "loss/aux": la.detach()}
     optim["actor"].zero_grad(set_to_none=True)
     total.backward()
     _step(optim["actor"])

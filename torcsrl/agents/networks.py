@@ -168,7 +168,10 @@ class DeterministicActor(nn.Module):
         self._unit = bool((self.a_mid == 0).all() and (self.a_half == 1).all())
 
     def forward(self, *obs: torch.Tensor) -> torch.Tensor:
-        x = self.encoder(*obs)
+        return self.act(self.encoder(*obs))
+
+    def act(self, x: torch.Tensor) -> torch.Tensor:
+        """The action from the encoder's features ``x`` (``forward`` = ``act(encoder(*obs))``)."""
         *hidden, last = self._linears()
         for lin in hidden:  # self.net, without a module call per layer (~5 us each)
             x = F.linear(x, lin.weight, lin.bias).relu_()
