@@ -39,7 +39,11 @@ Camera (or call :func:`setup_renderer`) right after ``p.connect`` — before the
 the world; and with the plugin loaded pybullet crashes (segfault, pybullet 3.2.7) on a body whose
 collision shape is a ``GEOM_PLANE`` without a visual shape — give the ground plane a visual shape.
 Asking for ``"egl"`` without a GPU raises :class:`RendererUnavailable`. EGL frames match tiny ones in
-geometry (depth within 0.5 %) but not exactly in shading.
+geometry but not exactly in shading. Measured on an H200 (2026-11-26, ``benchmarks/gpu/``, hood camera on
+hairpins): mean |tiny − egl| 2.3–4.0 grey levels, most of it thin objects on the horizon shifted by about a
+pixel; depth differs by a median 1.2–1.6 % per pixel (half-pixel sampling: tiny samples pixel corners,
+OpenGL centres); EGL adds a specular highlight on cars (it ignores ``lightSpecularCoeff=0``). At these
+sizes EGL is slower than tiny (96x64: 615 vs 1160 frames/s on one thread): its fixed cost per frame wins.
 
 Frame rate: :meth:`Camera.observe` renders each car every ``every`` calls and holds its last frame
 in between; :meth:`Camera.render` / :meth:`Camera.render_batch` always render.
