@@ -79,6 +79,26 @@ def test_grip_aware_teacher_plans_its_braking_with_the_surface():
             SensorDriver(decel_per_mu=bad)
 
 
+def test_sight_limited_teacher_plans_its_speed_on_what_the_camera_can_see():
+    from torcsrl.demos import DemoError, make_teacher
+    from torcsrl.policies import PolicyError, SensorDriver, load_policy
+
+    grip, sight = load_policy("sensor_grip"), load_policy("sensor_sight")
+    assert sight.k.sight_m == SensorDriver.CAMERA_SIGHT_M and load_policy("sensor_sight:90").k.sight_m == 90.0
+    st = np.zeros(len(STATE_SLOTS))
+    st[STATE_SLOTS.index("speedX_kmh")] = 150.0  # 41.7 m/s on a long straight, asphalt
+    straight = np.full(19, 200.0)
+    assert grip.act(straight, st, mu=1.0)[1] > 0 > sight.act(straight, st, mu=1.0)[1]  # it cannot stop within 70 m: it brakes
+    near = np.full(19, 40.0)  # a bend nearer than the sight distance: both see the same
+    assert grip.act(near, st, mu=1.0) == sight.act(near, st, mu=1.0)
+    with pytest.raises(PolicyError, match="number of metres"):
+        load_policy("sensor_sight:far")
+    with pytest.raises(DemoError, match="number of metres"):
+        make_teacher("sensor_sight:far")
+    with pytest.raises(ValueError, match="sight_m"):
+        SensorDriver(sight_m=5.0)
+
+
 # ------------------------------------------------------------------ privileged distillation, end to end (tiny)
 @pytest.fixture(scope="module")
 def distilled(tmp_path_factory):

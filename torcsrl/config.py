@@ -150,9 +150,9 @@ def problems(cfg: DictConfig | Mapping) -> list[str]:
     _check_critic_obs_keys(c, out)
     demos = c.get("demos")
     if isinstance(demos, Mapping) and "teacher" in demos:
-        from torcsrl.demos import TEACHERS
+        from torcsrl.demos import TEACHERS, known_teacher
 
-        if demos["teacher"] not in TEACHERS:
+        if not known_teacher(str(demos["teacher"])):
             out.append(f"demos.teacher: unknown teacher {demos['teacher']!r}; allowed: {', '.join(TEACHERS)}")
     if "logger" in c:
         _against(_load_ref("logger/csv.yaml"), c["logger"], "logger", out, source="conf/logger/csv.yaml")

@@ -45,7 +45,12 @@ EXTRA_KEYS = ("expert_action", "privileged")
 #: under the wheels ``info/surfaceMu``. A camera student regresses it as an auxiliary target (``algo.aux_privileged``).
 PRIVILEGED_SLOTS: tuple[str, ...] = tuple(f"track_{i}" for i in range(19)) + ("angle", "trackPos", "surfaceMu")
 #: Teachers that label demonstrations (:func:`make_teacher`).
-TEACHERS = ("expert", "sensor", "sensor_grip")
+TEACHERS = ("expert", "sensor", "sensor_grip", "sensor_sight[:<metres>]")
+
+
+def known_teacher(name: str) -> bool:
+    """Whether ``name`` is one of :data:`TEACHERS` (``sensor_sight:<metres>`` with any number)."""
+    return name in TEACHERS[:-1] or name == "sensor_sight" or name.startswith("sensor_sight:")
 
 
 class DemoError(ValueError):
@@ -88,6 +93,15 @@ def make_teacher(name: str):
         return SensorDriver(rangefinder_key="rangefinder_clean", state_key="state_clean")
     if name == "sensor_grip":
         return SensorDriver(decel_per_mu=SensorDriver.GRIP_DECEL_PER_MU, rangefinder_key="rangefinder_clean", state_key="state_clean")
+    if name == "sensor_sight" or name.startswith("sensor_sight:"):
+        from torcsrl.policies import PolicyError, _sight
+
+        try:
+            sight = _sight(name)
+        except PolicyError as err:
+            raise DemoError(f"demos.teacher={err}") from None
+        return SensorDriver(decel_per_mu=SensorDriver.GRIP_DECEL_PER_MU, sight_m=sight, rangefinder_key="rangefinder_clean",
+                            state_key="state_clean")
     raise DemoError(f"demos.teacher={name!r} is not known; allowed: {', '.join(TEACHERS)}")
 
 

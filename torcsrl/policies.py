@@ -84,7 +84,7 @@ REFERENCE_RL_POLICY = Path(__file__).resolve().parent / "assets" / "reference_td
 #: The shipped camera-only driver, ``reference_camera`` (``reference_camera.md``: command, selection, figures).
 REFERENCE_CAMERA_POLICY = Path(__file__).resolve().parent / "assets" / "reference_camera.pt"
 #: Names of the built-in policies (anything else is a checkpoint path).
-BUILTIN_POLICIES = ("expert", "heuristic", "sensor", "sensor_grip", "random", "reference", "reference-td3", "reference_camera")
+BUILTIN_POLICIES = ("expert", "heuristic", "sensor", "sensor_grip", "sensor_sight[:<metres>]", "random", "reference", "reference-td3", "reference_camera")
 
 
 class PolicyError(ValueError):
@@ -495,6 +495,11 @@ class SensorDriver(Policy):
     #: (set:train's fast_straights, hairpins, esses + gen-10001/2/4, 2 laps at 10 Hz): 24/24 laps on asphalt, wet,
     #: dirt and gravel at 1.17-1.19x the expert (the surface-blind teacher: 1.45x on asphalt).
     GRIP_DECEL_PER_MU = 7.5
+    #: The sight distance [m] of the camera student's teacher (``sensor_sight``): it plans its speed as if it saw no
+    #: further than this, the distance at which a bend becomes visible to the 96x64 hood camera (a bend 100 m ahead is
+    #: below one pixel row of it; the teacher that sees 200 m brakes for bends the student cannot see, and the student
+    #: learns never to brake). An observability-matched teacher: its choices are the ones the student can infer.
+    CAMERA_SIGHT_M = 70.0
     #: The first teacher's gains (no speed scaling, a pedal step, softer traction control, decel 3.5).
     V1 = {"decel": 3.5, "k_v": 0.3, "slip_max": 0.12, "v_gain_free": math.inf, "v_gain_axis": math.inf,
           "v_gain_pos": math.inf, "pedal_ramp_ms": 0.0}
@@ -505,7 +510,7 @@ class SensorDriver(Policy):
                  k_pos: float = 0.15, k_free: float = 0.8, p: float = 6.0, k_beta: float = -1.0, slip_max: float = 0.05,
                  tc_width: float = 3.0, u_slide: float = 0.3, k_slide: float = 5.0, k_v: float = 0.1, sat: float = 0.9,
                  v_gain_free: float = 5.0, v_gain_axis: float = math.inf, v_gain_pos: float = 15.0,
-                 pedal_ramp_ms: float = 1.0, decel_per_mu: float | None = None, vehicle: str = "default",
+                 pedal_ramp_ms: float = 1.0, decel_per_mu: float | None = None, sight_m: float | None = None, vehicle: str = "default",
                  rangefinder_key: str = "rangefinder", state_key: str = "state") -> None:
         from torcsrl.envs.sensors import RANGEFINDER_ANGLES_DEG
         from torcsrl.envs.vehicle import VehicleParams
@@ -518,11 +523,16 @@ class SensorDriver(Policy):
         self.k = SimpleNamespace(decel=decel, d0=d0, v_min=v_min, v_max=v_max, k_axis=k_axis, k_pos=k_pos, k_free=k_free, p=p,
                                  k_beta=k_beta, slip_max=slip_max, tc_width=tc_width, u_slide=u_slide, k_slide=k_slide, k_v=k_v, sat=sat,
                                  v_gain=(float(v_gain_free), float(v_gain_axis), float(v_gain_pos)), pedal_ramp_ms=float(pedal_ramp_ms),
-                                 decel_per_mu=None if decel_per_mu is None else float(decel_per_mu))
+                                 decel_per_mu=None if decel_per_mu is None else float(decel_per_mu),
+                                 sight_m=math.inf if sight_m is None else float(sight_m))
         if decel_per_mu is not None:
             if not math.isfinite(float(decel_per_mu)) or float(decel_per_mu) <= 0.0:
                 raise ValueError(f"SensorDriver decel_per_mu must be a finite braking rate > 0 [m/s^2 per unit mu], got {decel_per_mu}")
             self.spec = f"sensor-grip{float(decel_per_mu):g}"
+        if sight_m is not None:
+            if not math.isfinite(float(sight_m)) or float(sight_m) <= d0:
+                raise ValueError(f"SensorDriver sight_m must be a finite distance > d0 = {d0} m, got {sight_m}")
+            self.spec += f"-sight{float(sight_m):g}"
         self.max_steer, self.wheel_r = float(prm.max_steer), float(prm.wheel_radius)
         self.keys = (rangefinder_key, state_key)
         self.ang = np.radians(np.asarray(RANGEFINDER_ANGLES_DEG, dtype=float))
@@ -545,7 +555,7 @@ class SensorDriver(Policy):
             f = np.maximum(r[self.front], 0.0)
             w = (f / 200.0) ** k.p + 1e-9
             theta = float((w * self.ang[self.front]).sum() / w.sum())
-            d = float(np.max(r[self.centre]))
+            d = min(float(np.max(r[self.centre])), k.sight_m)
             g_free, g_axis, g_pos = (min(1.0, vg / max(v, 1.0)) for vg in k.v_gain)
             steer_rad = (g_free * k.k_free * theta * min(1.0, 60.0 / max(d, 1.0)) - g_axis * k.k_axis * angle
                          - g_pos * k.k_pos * tp)
@@ -608,6 +618,16 @@ class RandomPolicy(Policy):
 
 
 # --------------------------------------------------------------------------------------------
+def _sight(name: str) -> float:
+    """The sight distance [m] of ``sensor_sight`` (:data:`SensorDriver.CAMERA_SIGHT_M`) or ``sensor_sight:<metres>``."""
+    if ":" not in name:
+        return SensorDriver.CAMERA_SIGHT_M
+    try:
+        return float(name.split(":", 1)[1])
+    except ValueError:
+        raise PolicyError(f"{name!r}: the sight distance after 'sensor_sight:' must be a number of metres, e.g. sensor_sight:70") from None
+
+
 def load_policy(spec: str | Path | Policy) -> Policy:
     """The :class:`Policy` for ``spec`` (see the module docstring); :class:`PolicyError` (one line)
     for a missing, corrupt or unusable checkpoint."""
@@ -622,6 +642,8 @@ def load_policy(spec: str | Path | Policy) -> Policy:
         return SensorDriver()
     if s == "sensor_grip":
         return SensorDriver(decel_per_mu=SensorDriver.GRIP_DECEL_PER_MU)
+    if s == "sensor_sight" or s.startswith("sensor_sight:"):
+        return SensorDriver(decel_per_mu=SensorDriver.GRIP_DECEL_PER_MU, sight_m=_sight(s))
     if s == "random":
         return RandomPolicy()
     if s == "reference":
