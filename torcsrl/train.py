@@ -1,4 +1,4 @@
-"""Train a racing driver: ``python -m torcsrl.train [algo=td3|ddpg|d4pg] [env=race|toy] [overrides]``.
+"""Train a racing driver: ``python -m torcsrl.train [algo=td3|ddpg|d4pg|sac|ppo] [env=race|toy] [overrides]``.
 
 ``main`` is a thin Hydra wrapper; :func:`train` does the work and returns the final metrics, so
 tests call it directly on a config composed with Hydra's ``compose`` API. The loop reads in the
@@ -526,6 +526,10 @@ def train(cfg: DictConfig) -> dict[str, Any]:
             from torcsrl.imitation import train as imitate
 
             return imitate(cfg)
+        if cfg.algo.name in agents.ON_POLICY:  # PPO: rollouts, then epochs of minibatches (torcsrl/onpolicy.py)
+            from torcsrl.onpolicy import train as train_on_policy
+
+            return train_on_policy(cfg, run_dir)
         return _train(cfg, run_dir)
 
 

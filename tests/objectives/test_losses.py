@@ -96,7 +96,7 @@ def test_td3_target_is_clipped_double_q_with_terminal_mask():
     ag.make_target_updater(cfg, loss)
     batch = _batch(env, keys)
     batch["next", "terminated"][0] = True
-    target, _ = loss._target(batch, batch["action"])
+    target, _ = loss.target(batch)
     nxt = [batch["next", k] for k in keys]
     q = critic(*nxt, actor(*nxt)).squeeze(-1)  # targets == online weights right after the updater's init
     want = batch["next", "reward"].squeeze(-1) + cfg.gamma * q.min(0).values
