@@ -103,6 +103,7 @@ class ActorCriticLoss(LossModule, metaclass=_DirectLossMeta):
     qvalue_network: nn.Module
     actor_network_params: TensorDictParams
     qvalue_network_params: TensorDictParams
+    target_actor_network_params: TensorDictParams
     target_qvalue_network_params: TensorDictParams
 
     def __init__(
