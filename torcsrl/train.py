@@ -283,7 +283,7 @@ def sample_batch(buffer: ReplayBuffer, demos: ReplayBuffer | None, n_demo: int):
         return buffer.sample()
     on = buffer.sample(buffer.batch_size - n_demo)
     on.set("expert_action", on.get("action"))
-    return torch.cat([on, demos.sample(n_demo)], 0)
+    return torch.cat([on, demos.sample(n_demo).select(*on.keys(), strict=False)], 0)  # demo-only keys ("privileged") dropped
 
 
 def pretrain(agent, hot, loss, optim, target_updater, demos: ReplayBuffer, bc_steps: int, critic_steps: int, precision: str,
