@@ -404,7 +404,7 @@ def _check_critic_obs_keys(c: Mapping, out: list[str]) -> None:
         out.append(f"critic_obs_keys: unknown sensor(s) {bad}; allowed: {', '.join(SENSOR_NAMES)}")
     algo = (c.get("algo") or {}).get("name") if isinstance(c.get("algo"), Mapping) else None
     if algo in IMITATION:
-        out.append(f"critic_obs_keys: algo={algo} has no critic; allowed: null, or an actor-critic algo (ddpg, td3, d4pg)")
+        out.append(f"critic_obs_keys: algo={algo} has no critic; allowed: null, or an actor-critic algo (ddpg, td3, d4pg, sac)")
     demos = c.get("demos") if isinstance(c.get("demos"), Mapping) else {}
     if algo not in IMITATION and (demos.get("path") or (_is_num(demos.get("frames")) and demos.get("frames") > 0)):
         out.append("critic_obs_keys: demonstrations hold the actor's observations only (no critic keys); allowed: demos.frames=0 "
