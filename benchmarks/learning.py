@@ -58,8 +58,11 @@ def run_seed(env: str, algo: str, seed: int, budget: int, chunk: int, overrides:
         ag = agents.get(cfg.algo.name)
         keys = list(cfg.obs_keys or cfg.env.sensors)
         actor = ag.make_actor(cfg.algo, env_v, keys)
-        actor.load_state_dict({k[len("actor_network_params."):]: v for k, v in ck["loss"].items() if k.startswith("actor_network_params.")}, strict=False)
-        policy = ag.make_exploration(cfg.algo, actor, env_v, keys)
+        sd = ck.get("actor") or {k[len("actor_network_params."):]: v for k, v in ck["loss"].items() if k.startswith("actor_network_params.")}
+        actor.load_state_dict(sd)
+        from tensordict.nn import TensorDictModule
+
+        policy = TensorDictModule(actor, in_keys=keys, out_keys=["action"])  # deterministic: SAC's and PPO's mean action
         with torch.no_grad():
             ev = validate_all(envs_v, policy, 1, int(cfg.eval.max_steps))
         for e in envs_v.values():
@@ -77,7 +80,7 @@ def run_seed(env: str, algo: str, seed: int, budget: int, chunk: int, overrides:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--env", default="race", choices=["race", "toy"])
-    ap.add_argument("--algo", default="td3", choices=["ddpg", "td3", "d4pg"])
+    ap.add_argument("--algo", default="td3", choices=["ddpg", "td3", "d4pg", "sac", "ppo"])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--budget", type=int, default=1_000_000, help="env steps per seed at most")
     ap.add_argument("--chunk", type=int, default=10_000, help="env steps between milestone checks")

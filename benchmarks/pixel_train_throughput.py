@@ -61,7 +61,7 @@ def _rate(n: int, fn) -> float:
 def student(frames: int, updates: int, batch: int, device: torch.device) -> tuple[float, float]:
     """(DAgger frames/s, BC updates/s) of the camera student of experiment=camera_distill."""
     from torcsrl.agents._build import bc_step
-    from torcsrl.agents.networks import split_obs_keys
+    from torcsrl.nets import split_obs_keys
     from torcsrl.demos import EXTRA_KEYS, label_rollouts, make_demo_env
     from torcsrl.objectives.common import ObsUnpacker
     from torcsrl.utils.replay import ReplayBuffer

@@ -1,4 +1,5 @@
-"""Training-loop throughput: our TD3 / DDPG / D4PG loops vs Stable-Baselines3 TD3, on Pendulum-v1.
+"""Training-loop throughput: our DDPG / TD3 / D4PG / SAC loops vs Stable-Baselines3 (TD3; SAC for SAC) on Pendulum-v1,
+and our PPO vs SB3's PPO with its ``SubprocVecEnv`` on the race env at the same number of cars (``--algos ppo``).
 
 Same settings for all: 256x256 actor and critic, batch 256, one gradient step per env step
 (TD3: actor every 2), one env, after a warm-up of random steps. Steps/s are env steps per
@@ -14,7 +15,12 @@ on odd ones), a round's ratios compare runs seconds apart, and the table gives t
 over rounds. SB3 is used when importable (``pip install stable-baselines3``, the ``[bench]``
 extra; a ``--target /tmp/peers`` install is picked up too).
 
-    python benchmarks/train_throughput.py [--steps 1500] [--warmup 500] [--threads 1 2] [--rounds 3] [--algos td3 d4pg td3+bf16]
+PPO (``--algos ppo``): env frames per wall second while training on the oval (the training config's 10 Hz race env,
+``--cars`` cars: ours in one batched world, SB3's as ``SubprocVecEnv`` processes of ``torcsrl/Race-v0``), rollouts of
+``--ppo-rollout`` steps a car, 10 epochs of minibatches of 64, 256x256 nets, compared with SB3 PPO at the same settings.
+
+    python benchmarks/train_throughput.py [--steps 1500] [--warmup 500] [--threads 1 2] [--rounds 3] [--algos td3 sac d4pg td3+bf16]
+    python benchmarks/train_throughput.py --algos ppo --cars 16 --steps 8192 --threads 1 [--ppo-rollout 128]
 """
 
 from __future__ import annotations
@@ -39,7 +45,9 @@ from hydra import compose, initialize_config_dir  # noqa: E402
 from torcsrl.train import train  # noqa: E402
 from torcsrl.utils.logging import read_csv_metric  # noqa: E402
 
-TARGETS = {"td3": 1.25, "d4pg": 1.0}
+TARGETS = {"td3": 1.25, "d4pg": 1.0, "sac": 1.1, "ppo": 3.0}
+#: The SB3 peer of each of our algorithms (at the same settings).
+PEER = {"ddpg": "TD3", "td3": "TD3", "d4pg": "TD3", "sac": "SAC", "ppo": "PPO"}
 
 
 def cpu_bf16() -> str:
@@ -52,7 +60,7 @@ def cpu_bf16() -> str:
     return ", ".join(found) or "none"
 
 
-def ours(name: str, threads: int, steps: int, warmup: int, extra: list[str]) -> tuple[float, float]:
+def ours(name: str, threads: int, steps: int, warmup: int, extra: list[str], cars: int = 1, rollout: int = 128) -> tuple[float, float]:
     """(steps per wall second, steps per CPU second) of ``torcsrl.train.train`` after the warm-up (from its log).
 
     ``name``: an algorithm, or ``<algo>+bf16`` for its mixed-precision updates."""
@@ -63,11 +71,17 @@ def ours(name: str, threads: int, steps: int, warmup: int, extra: list[str]) -> 
         extra = [*extra, "algo.precision=bfloat16"]
     run = tempfile.mkdtemp(prefix=f"tp_{algo}_")
     every = max(50, steps // 5)
+    if algo == "ppo":  # the race env, cars in one world; frames counted over all cars
+        every = cars * rollout
+        warmup = every  # the first rollout (and its update) is the warm-up
+        env = ["env.track=oval", f"env.num_cars={cars}", f"algo.rollout_steps={rollout}", "algo.batch_size=64", "algo.epochs=10"]
+    else:
+        env = ["env.name=gym", "+env.id=Pendulum-v1", "env.sensors=[observation]", "algo.batch_size=256", "collector.frames_per_batch=1"]
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         cfg = compose("train", overrides=[
-            f"algo={algo}", "env.name=gym", "+env.id=Pendulum-v1", "env.sensors=[observation]", f"run_dir={run}",
-            f"threads={threads}", f"total_frames={warmup + steps}", f"collector.init_random_frames={warmup}",
-            f"learner.warmup_frames={warmup}", "collector.frames_per_batch=1", "algo.batch_size=256",
+            f"algo={algo}", *env, f"run_dir={run}",
+            f"threads={threads}", f"total_frames={warmup + steps}", f"collector.init_random_frames={0 if algo == 'ppo' else warmup}",
+            f"learner.warmup_frames={warmup}",
             "algo.actor_hidden=[256,256]", "algo.critic_hidden=[256,256]", "eval.every_episodes=1000000",
             "checkpoint.every_frames=0", "checkpoint.buffer=false", f"logger.every_frames={every}", "progress=false",
             "buffer.size=100000",
@@ -81,16 +95,41 @@ def ours(name: str, threads: int, steps: int, warmup: int, extra: list[str]) -> 
     return (wall[-1][0] - wall[0][0]) / (wall[-1][1] - wall[0][1]), (cpu[-1][0] - cpu[0][0]) / (cpu[-1][1] - cpu[0][1])
 
 
-class SB3:
-    """One SB3 TD3 model per thread count, learning ``steps`` more steps per call."""
+def _race_env():
+    """The training config's race env for SB3's worker processes: oval, 10 Hz, 20 substeps, observations normalised as ours."""
+    import gymnasium as gym
+    import numpy as np
 
-    def __init__(self, threads: int, warmup: int):
+    import torcsrl  # noqa: F401  (registers torcsrl/Race-v0)
+    from torcsrl.envs.sensors import obs_scale
+
+    env = gym.make("torcsrl/Race-v0", track="oval", control_hz=10, substeps=20)
+    div = {k: np.asarray(obs_scale(k, env.observation_space[k].shape[-1]), dtype=np.float32) for k in ("rangefinder", "state")}
+    env = gym.wrappers.TransformObservation(env, lambda o: {k: (o[k] / div[k]).astype(np.float32) for k in div},
+                                            gym.spaces.Dict({k: env.observation_space[k] for k in div}))
+    return gym.wrappers.FlattenObservation(env)
+
+
+class SB3:
+    """One SB3 model per thread count (TD3 or SAC on Pendulum-v1; PPO on ``cars`` race-env processes), learning
+    ``steps`` more env steps per call."""
+
+    def __init__(self, algo: str, threads: int, warmup: int, cars: int = 1, rollout: int = 128):
         import gymnasium as gym
-        from stable_baselines3 import TD3
+        import stable_baselines3 as sb3
 
         torch.set_num_threads(threads)
-        self.m = TD3("MlpPolicy", gym.make("Pendulum-v1"), learning_starts=warmup, batch_size=256, buffer_size=100000,
-                     policy_kwargs=dict(net_arch=[256, 256]), seed=0, device="cpu")
+        self.algo = algo
+        if algo == "PPO":
+            from stable_baselines3.common.vec_env import SubprocVecEnv
+
+            self.venv = SubprocVecEnv([_race_env] * cars)
+            self.m = sb3.PPO("MlpPolicy", self.venv, n_steps=rollout, batch_size=64, n_epochs=10, seed=0, device="cpu",
+                             policy_kwargs=dict(net_arch=[256, 256]))
+            warmup = cars * rollout
+        else:
+            self.m = getattr(sb3, algo)("MlpPolicy", gym.make("Pendulum-v1"), learning_starts=warmup, batch_size=256, buffer_size=100000,
+                                        policy_kwargs=dict(net_arch=[256, 256]), seed=0, device="cpu")
         self.m.learn(warmup + 50)
         self.threads = threads
 
@@ -107,7 +146,9 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=500, help="random steps before updates start")
     ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--rounds", type=int, default=3, help="rounds of side-by-side runs (median reported)")
-    ap.add_argument("--algos", nargs="+", default=["td3", "ddpg", "d4pg"])
+    ap.add_argument("--algos", nargs="+", default=["td3", "ddpg", "d4pg", "sac"])
+    ap.add_argument("--cars", type=int, default=16, help="PPO: cars (ours: one batched world; SB3: SubprocVecEnv processes)")
+    ap.add_argument("--ppo-rollout", type=int, default=128, help="PPO: env steps per car per rollout")
     ap.add_argument("overrides", nargs="*", help="extra Hydra overrides for our runs (after --)")
     a = ap.parse_args()
     try:
@@ -117,10 +158,14 @@ def main() -> None:
     except ImportError:
         have_sb3 = False
         print("stable-baselines3 is not installed (pip install stable-baselines3): ratios are left out", file=sys.stderr)
+    peers = {PEER[k.partition("+")[0]] for k in a.algos}
+    if len(peers) != 1:
+        raise SystemExit(f"--algos {' '.join(a.algos)} compare with different SB3 peers ({', '.join(sorted(peers))}); run them separately")
+    peer_name = peers.pop()
     table = []
     for th in a.threads:
         load0 = os.getloadavg()[0]
-        peer = SB3(th, a.warmup) if have_sb3 else None
+        peer = SB3(peer_name, th, a.warmup, a.cars, a.ppo_rollout) if have_sb3 else None
         runs: dict[str, list[float]] = {k: [] for k in ["sb3", *a.algos]}
         ratios: dict[str, list[float]] = {k: [] for k in a.algos}
         cpu_ratios: dict[str, list[float]] = {k: [] for k in a.algos}
@@ -132,7 +177,7 @@ def main() -> None:
                     if peer is not None:
                         got[name] = peer(a.steps)
                 else:
-                    got[name] = ours(name, th, a.steps, a.warmup, a.overrides)
+                    got[name] = ours(name, th, a.steps, a.warmup, a.overrides, a.cars, a.ppo_rollout)
             for k, v in got.items():
                 runs[k].append(v[0])
             if "sb3" in got:
@@ -141,12 +186,16 @@ def main() -> None:
                     cpu_ratios[k].append(got[k][1] / got["sb3"][1])
             print(f"[threads {th} round {r}] " + ", ".join(f"{k} {v[0]:.1f} steps/s ({v[1]:.1f} per CPU-s)" for k, v in got.items())
                   + f"; load {os.getloadavg()[0]:.2f}", file=sys.stderr)
+        if peer is not None and peer_name == "PPO":
+            peer.venv.close()
         table.append((th, load0, os.getloadavg()[0], runs, ratios, cpu_ratios))
 
-    print(f"\nPendulum-v1, 256x256, batch 256, UTD 1, {a.steps} steps after {a.warmup} warm-up; steps/s and ratio to SB3 TD3, "
+    setting = (f"race env (oval, 10 Hz), {a.cars} cars, rollouts of {a.ppo_rollout} steps a car, 10 epochs of minibatches of 64, 256x256"
+               if peer_name == "PPO" else f"Pendulum-v1, 256x256, batch 256, UTD 1, {a.steps} steps after {a.warmup} warm-up")
+    print(f"\n{setting}; env steps/s and ratio to SB3 {peer_name}, "
           f"median of {a.rounds} side-by-side rounds (cpu: ratio of steps per CPU-second, meaningful at 1 thread); "
           f"CPU bfloat16 units: {cpu_bf16()}")
-    head = f"{'threads':>7} | {'load':>9} | {'SB3 TD3':>8} | " + " | ".join(f"{k.upper():>8} {'ratio':>6} {'cpu':>5}" for k in a.algos)
+    head = f"{'threads':>7} | {'load':>9} | {'SB3 ' + peer_name:>8} | " + " | ".join(f"{k.upper():>8} {'ratio':>6} {'cpu':>5}" for k in a.algos)
     print(head)
     for th, l0, l1, runs, ratios, cpu_ratios in table:
         sb = f"{statistics.median(runs['sb3']):8.1f}" if runs["sb3"] else f"{'n/a':>8}"
@@ -155,7 +204,7 @@ def main() -> None:
             rt = f"{statistics.median(ratios[k]):6.2f} {statistics.median(cpu_ratios[k]):5.2f}" if ratios[k] else f"{'-':>6} {'-':>5}"
             cells.append(f"{statistics.median(runs[k]):8.1f} {rt}")
         print(f"{th:>7} | {l0:4.1f}-{l1:<4.1f} | {sb} | " + " | ".join(cells))
-    print("targets: " + ", ".join(f"{k.upper()} >= {v} x SB3 TD3" for k, v in TARGETS.items()) + " (steps/s, float32)")
+    print("targets: " + ", ".join(f"{k.upper()} >= {v} x SB3 {PEER[k]}" for k, v in TARGETS.items()) + " (steps/s, float32)")
 
 
 if __name__ == "__main__":

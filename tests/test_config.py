@@ -295,7 +295,7 @@ def test_unknown_names_list_the_allowed_ones():
     assert "env.vehicle: the toy env has no 'vehicle'" in msg
     with pytest.raises(MissingConfigException, match="kidney"):  # a group option that does not exist lists the others
         compose_cfg("track=monza")
-    assert "algo.name: unknown algorithm 'sac'" in one_problem("algo.name=sac")
+    assert "algo.name: unknown algorithm 'a2c'" in one_problem("algo.name=a2c")
 
 
 def test_missing_mandatory_values_are_named():

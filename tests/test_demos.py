@@ -112,7 +112,7 @@ def test_actor_regularisers_pull_towards_labels_and_smooth():
     opt = torch.optim.Adam(actor.parameters(), lr=1e-2)
     first = last = None
     for _ in range(60):
-        la, q_meta = loss._actor_loss(batch)
+        la, q_meta = loss.actor_loss(batch)
         la, m = _build.actor_regularisers(loss, batch, q_meta["_action"], q_meta["_q"], la, reg)
         opt.zero_grad()
         la.backward()

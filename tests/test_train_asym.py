@@ -98,8 +98,8 @@ def test_training_env_has_both_sets_validation_env_the_actors_only():
             buf.extend(out)
         batch = buf.sample(3)
         assert batch["pixels"].dtype == torch.uint8 and batch["next", "rangefinder"].shape == (3, 19)
-        lq, _ = loss._value_loss(batch, td_error=False)
-        la, _ = loss._actor_loss(batch)
+        lq, _ = loss.value_loss(batch)
+        la, _ = loss.actor_loss(batch)
         assert torch.isfinite(lq) and torch.isfinite(la)
     finally:
         env.close()

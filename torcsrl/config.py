@@ -148,6 +148,7 @@ def problems(cfg: DictConfig | Mapping) -> list[str]:
             out.append(f"device: {c['device']!r} with collector.num_workers={workers}: the env processes act on the CPU copy of the "
                        "actor only in-process; allowed: collector.num_workers=0 with a GPU device, or device=cpu")
     _check_critic_obs_keys(c, out)
+    _check_algo_fit(c, out)
     demos = c.get("demos")
     if isinstance(demos, Mapping) and "teacher" in demos:
         from torcsrl.demos import TEACHERS, known_teacher
@@ -403,21 +404,72 @@ def _check_critic_obs_keys(c: Mapping, out: list[str]) -> None:
         out.append(f"critic_obs_keys: unknown sensor(s) {bad}; allowed: {', '.join(SENSOR_NAMES)}")
     algo = (c.get("algo") or {}).get("name") if isinstance(c.get("algo"), Mapping) else None
     if algo in IMITATION:
-        out.append(f"critic_obs_keys: algo={algo} has no critic; allowed: null, or an actor-critic algo (ddpg, td3, d4pg)")
+        out.append(f"critic_obs_keys: algo={algo} has no critic; allowed: null, or an actor-critic algo (ddpg, td3, d4pg, sac)")
     demos = c.get("demos") if isinstance(c.get("demos"), Mapping) else {}
     if algo not in IMITATION and (demos.get("path") or (_is_num(demos.get("frames")) and demos.get("frames") > 0)):
         out.append("critic_obs_keys: demonstrations hold the actor's observations only (no critic keys); allowed: demos.frames=0 "
                    "and demos.path=null with critic_obs_keys (start the actor from a distilled student with init.actor=...)")
 
 
+def _check_algo_fit(c: Mapping, out: list[str]) -> None:
+    """Settings that do not apply to the chosen algorithm. SAC and PPO explore by sampling their own policy: no action
+    or parameter noise (``algo.exploration`` stays at ``kind: none`` and the base's values), and SAC has no TD3 target
+    smoothing. PPO learns on-policy from the batched env's rollouts: no replay (demonstrations, prioritised replay, a
+    loaded buffer, n-step returns), no worker processes, no asymmetric critic, no stochastic brake (its update needs the
+    log-probability of the action taken), the CPU only."""
+    algo = c.get("algo") if isinstance(c.get("algo"), Mapping) else {}
+    name = algo.get("name")
+    if name not in ("sac", "ppo"):
+        return
+    why = f"algo={name} explores by sampling its own policy"
+    expl = algo.get("exploration") if isinstance(algo.get("exploration"), Mapping) else {}
+    base = _load_ref("algo/base.yaml")["exploration"]
+    if expl.get("kind", "none") != "none":
+        out.append(f"algo.exploration.kind={expl.get('kind')}: {why} (no action or parameter noise); allowed: algo.exploration.kind=none")
+    else:
+        for k, v in expl.items():
+            if k != "kind" and k in base and v != base[k]:
+                out.append(f"algo.exploration.{k}={v}: noise settings do not apply to algo={name} ({why}); allowed: the default "
+                           f"{base[k]!r} (leave it unset)")
+    if name == "sac" and _is_num(algo.get("policy_noise")) and algo["policy_noise"] != 0:
+        out.append(f"algo.policy_noise={algo['policy_noise']}: TD3's target policy smoothing does not apply to algo=sac (its target "
+                   "samples the policy); allowed: 0")
+    if name != "ppo":
+        return
+    other = "or an off-policy algo: ddpg, td3, d4pg, sac"
+    demos = c.get("demos") if isinstance(c.get("demos"), Mapping) else {}
+    if demos.get("path") or (_is_num(demos.get("frames")) and demos.get("frames") > 0):
+        out.append(f"demos: algo=ppo learns on-policy from its own rollouts and does not support demonstrations (replay data); allowed: "
+                   f"demos.frames=0 and demos.path=null, {other}")
+    buf = c.get("buffer") if isinstance(c.get("buffer"), Mapping) else {}
+    if buf.get("prioritized"):
+        out.append(f"buffer.prioritized=true: algo=ppo has no replay buffer and does not support prioritised replay; allowed: false, {other}")
+    if buf.get("load"):
+        out.append(f"buffer.load={buf['load']}: algo=ppo has no replay buffer to load; allowed: null, {other}")
+    if _is_num(algo.get("n_steps")) and algo["n_steps"] != 1:
+        out.append(f"algo.n_steps={algo['n_steps']}: algo=ppo's returns are GAE (algo.gae_lambda), not n-step; allowed: 1")
+    col = c.get("collector") if isinstance(c.get("collector"), Mapping) else {}
+    if _is_num(col.get("num_workers")) and col["num_workers"] > 0:
+        out.append(f"collector.num_workers={col['num_workers']}: algo=ppo collects from the batched env in one process (env.num_cars "
+                   "cars in one world); allowed: 0")
+    if c.get("critic_obs_keys"):
+        out.append("critic_obs_keys: algo=ppo's value network sees the actor's observations; allowed: null")
+    brake = algo.get("stochastic_brake") if isinstance(algo.get("stochastic_brake"), Mapping) else {}
+    if brake.get("enabled"):
+        out.append("algo.stochastic_brake.enabled=true: algo=ppo's update needs the log-probability of the action taken, which the "
+                   "brake would replace; allowed: false")
+    if "device" in c and str(c["device"]) != "cpu":
+        out.append(f"device: {c['device']!r}: algo=ppo updates on the CPU only so far; allowed: cpu")
+
+
 def _check_budget(c: Mapping, out: list[str]) -> None:
     """A run whose warm-up covers its whole budget makes no gradient step: refuse it (RL algorithms only)."""
-    from torcsrl.agents import IMITATION
+    from torcsrl.agents import IMITATION, ON_POLICY
 
     algo = c.get("algo") if isinstance(c.get("algo"), Mapping) else {}
     warmup = (c.get("learner") or {}).get("warmup_frames") if isinstance(c.get("learner"), Mapping) else None
     total = c.get("total_frames")
-    if algo.get("name") in IMITATION or not (_is_num(warmup) and _is_num(total)):
+    if algo.get("name") in (*IMITATION, *ON_POLICY) or not (_is_num(warmup) and _is_num(total)):
         return
     if warmup >= total:
         out.append(f"learner.warmup_frames: {warmup} >= total_frames {total}: the run would make no gradient step; "

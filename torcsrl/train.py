@@ -1,4 +1,4 @@
-"""Train a racing driver: ``python -m torcsrl.train [algo=td3|ddpg|d4pg] [env=race|toy] [overrides]``.
+"""Train a racing driver: ``python -m torcsrl.train [algo=td3|ddpg|d4pg|sac|ppo] [env=race|toy] [overrides]``.
 
 ``main`` is a thin Hydra wrapper; :func:`train` does the work and returns the final metrics, so
 tests call it directly on a config composed with Hydra's ``compose`` API. The loop reads in the
@@ -283,7 +283,7 @@ def sample_batch(buffer: ReplayBuffer, demos: ReplayBuffer | None, n_demo: int):
         return buffer.sample()
     on = buffer.sample(buffer.batch_size - n_demo)
     on.set("expert_action", on.get("action"))
-    return torch.cat([on, demos.sample(n_demo)], 0)
+    return torch.cat([on, demos.sample(n_demo).select(*on.keys(), strict=False)], 0)  # demo-only keys ("privileged") dropped
 
 
 def pretrain(agent, hot, loss, optim, target_updater, demos: ReplayBuffer, bc_steps: int, critic_steps: int, precision: str,
@@ -526,6 +526,10 @@ def train(cfg: DictConfig) -> dict[str, Any]:
             from torcsrl.imitation import train as imitate
 
             return imitate(cfg)
+        if cfg.algo.name in agents.ON_POLICY:  # PPO: rollouts, then epochs of minibatches (torcsrl/onpolicy.py)
+            from torcsrl.onpolicy import train as train_on_policy
+
+            return train_on_policy(cfg, run_dir)
         return _train(cfg, run_dir)
 
 

@@ -8,7 +8,7 @@ from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torcsrl.agents.exploration import ActionNoise, ParamNoiseActor, StochasticBrake
-from torcsrl.agents.networks import Critic, DeterministicActor, EnsembleLinear, ObsEncoder, random_shift
+from torcsrl.nets import Critic, DeterministicActor, EnsembleLinear, ObsEncoder, random_shift
 from torcsrl.envs.toy import make_toy_env
 
 
@@ -37,7 +37,7 @@ def test_ensemble_scalar_head_values_and_gradients_equal_baddbmm(needs):
         lin.weight.copy_(w)
         lin.bias.copy_(b)
     torch.testing.assert_close(lin(x.detach()), torch.baddbmm(b, x, w).detach())
-    from torcsrl.agents.networks import ensemble_linear
+    from torcsrl.nets import ensemble_linear
 
     torch.autograd.gradcheck(ensemble_linear, (x, w, b))
     g = torch.randn(2, 9, 1, dtype=torch.float64)

@@ -28,7 +28,7 @@ def _batch(env, keys, n=8):
     return TensorDict({**obs, "action": torch.rand(n, 2) * 2 - 1, "next": nxt}, [n])
 
 
-@pytest.mark.parametrize("algo", agents.RL_ALGOS)
+@pytest.mark.parametrize("algo", agents.OFF_POLICY)
 def test_gradients_reach_only_their_own_networks(algo):
     torch.manual_seed(0)
     keys = ["rangefinder", "state", "pixels"]
@@ -96,7 +96,7 @@ def test_td3_target_is_clipped_double_q_with_terminal_mask():
     ag.make_target_updater(cfg, loss)
     batch = _batch(env, keys)
     batch["next", "terminated"][0] = True
-    target, _ = loss._target(batch, batch["action"])
+    target, _ = loss.target(batch)
     nxt = [batch["next", k] for k in keys]
     q = critic(*nxt, actor(*nxt)).squeeze(-1)  # targets == online weights right after the updater's init
     want = batch["next", "reward"].squeeze(-1) + cfg.gamma * q.min(0).values
@@ -168,7 +168,7 @@ def test_fused_soft_update_equals_torchrl_soft_update():
         assert torch.equal(a, b)
 
 
-@pytest.mark.parametrize("algo", agents.RL_ALGOS)
+@pytest.mark.parametrize("algo", agents.OFF_POLICY)
 def test_bfloat16_updates_are_mixed_precision_and_close_to_float32(algo):
     """algo.precision=bfloat16: matmuls in bf16, but weights, grads, optimiser state, Q and the losses stay float32,
     and one update moves the weights as the float32 update does (to bf16 accuracy)."""
@@ -208,3 +208,72 @@ def test_unknown_precision_is_one_clear_line():
 
     with pytest.raises(ValueError, match="algo.precision='fp16' is not known; allowed: float32, bfloat16"):
         precision_context("fp16", "cpu")
+
+
+def _sac(cfg_over=None):
+    cfg = OmegaConf.merge(ALGO_CFG, {"encoder": {"augment_shift": 0}, **(cfg_over or {})})
+    keys = ["rangefinder", "state"]
+    env = make_toy_env()
+    ag = agents.get("sac")
+    actor, critic = ag.make_actor(cfg, env, keys), ag.make_critic(cfg, env, keys)
+    loss = ag.make_loss(cfg, actor, critic, env, keys)
+    ag.make_target_updater(cfg, loss)
+    return env, keys, actor, critic, loss
+
+
+def test_sac_target_is_soft_clipped_double_q_with_the_online_policy():
+    torch.manual_seed(0)
+    env, keys, actor, critic, loss = _sac({"alpha_init": 0.3})
+    batch = _batch(env, keys)
+    batch["next", "terminated"][0] = True
+    torch.manual_seed(5)
+    target, _ = loss.target(batch)
+    nxt = [batch["next", k] for k in keys]
+    torch.manual_seed(5)
+    a, logp, _ = actor.sample(*nxt)  # the same draw
+    with torch.no_grad():
+        v = critic(*nxt, a).squeeze(-1).min(0).values - 0.3 * logp  # targets == online weights right after the updater's init
+    want = batch["next", "reward"].squeeze(-1) + ALGO_CFG.gamma * v
+    want[0] = batch["next", "reward"][0, 0]
+    torch.testing.assert_close(target, want)
+    assert not any(k.startswith("target_actor") for k in loss.state_dict())  # no target actor: the targets act with the online policy
+
+
+def test_sac_temperature_moves_towards_the_target_entropy_and_only_it():
+    torch.manual_seed(0)
+    env, keys, actor, critic, loss = _sac()
+    assert loss.target_entropy == -2.0  # "auto": minus the action size
+    batch = _batch(env, keys)
+    la, meta = loss.actor_loss(batch)
+    for logp, sign in ((torch.full((8,), 5.0), -1), (torch.full((8,), -5.0), 1)):  # entropy too low: alpha grows; too high: shrinks
+        loss.log_alpha.grad = None
+        loss.alpha_loss(logp).backward()
+        assert torch.sign(loss.log_alpha.grad) == sign
+    assert all(p.grad is None for p in [*actor.parameters(), *critic.parameters()])
+    g = loss.log_alpha.grad.clone()
+    la.backward()  # the actor loss treats alpha as a constant
+    assert torch.equal(loss.log_alpha.grad, g)
+    assert set(meta) >= {"entropy", "alpha", "_action", "_q", "_log_prob"}
+
+
+def test_ppo_gradients_reach_only_their_own_networks():
+    torch.manual_seed(0)
+    keys = ["rangefinder", "state", "pixels"]
+    env = make_toy_env(sensors=keys, camera={"height": 16, "width": 16})
+    cfg = OmegaConf.merge(ALGO_CFG, {"obs_norm": True, "entropy_coef": 0.01})
+    ag = agents.get("ppo")
+    actor, critic = ag.make_actor(cfg, env, keys), ag.make_critic(cfg, env, keys)
+    loss = ag.make_loss(cfg, actor, critic, env, keys)
+    assert ag.make_target_updater(cfg, loss) is None
+    with torch.no_grad():
+        data = env.rollout(16, ag.make_exploration(cfg, actor, env, keys), break_when_any_done=False)
+        loss.value_estimator(data)
+    assert {"advantage", "value_target"} <= set(data.keys())
+    out = loss(data)
+    (out["loss_objective"] + out["loss_entropy"]).backward(retain_graph=True)
+    assert all(p.grad is None for p in critic.parameters())
+    assert sum(float(p.grad.abs().sum()) for p in actor.parameters() if p.grad is not None) > 0
+    actor.zero_grad(set_to_none=True)
+    out["loss_critic"].backward()
+    assert all(p.grad is None for p in actor.parameters())
+    assert all(p.grad is not None for p in critic.net.parameters())

@@ -1,7 +1,9 @@
-"""Builders shared by the three agents; ``ddpg.py``, ``td3.py`` and ``d4pg.py`` call them with their differences.
+"""Builders shared by the agents, and the factories the off-policy agents share as they are.
 
-``cfg`` is the ``algo`` config node (``conf/algo/base.yaml`` documents every knob and its unit).
-Sizes and bounds come from the env's specs.
+``ddpg.py``, ``td3.py``, ``d4pg.py`` and ``sac.py`` import :func:`make_actor` (not SAC), :func:`make_target_updater`,
+:func:`make_exploration` (not SAC) and :func:`make_optimizers` (SAC extends it) from here and write only the
+factories in which their algorithms differ (the critic, the loss, the update's schedule). ``cfg`` is the ``algo``
+config node (``conf/algo/base.yaml`` documents every knob and its unit). Sizes and bounds come from the env's specs.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ from torchrl.envs import EnvBase
 from torchrl.objectives import LossModule, SoftUpdate
 
 from torcsrl.agents.exploration import ActionNoise, BehaviourPolicy, DeviceActorModule, ParamNoiseActor, StochasticBrake
-from torcsrl.agents.networks import Critic, DeterministicActor, ObsEncoder, split_obs_keys
+from torcsrl.nets import Critic, DeterministicActor, ObsEncoder, split_obs_keys
 
 
 def action_bounds(env: EnvBase) -> tuple[torch.Tensor, torch.Tensor]:
@@ -27,10 +29,10 @@ def action_bounds(env: EnvBase) -> tuple[torch.Tensor, torch.Tensor]:
     return low, high
 
 
-def encoder(cfg: Any, env: EnvBase, obs_keys: list[str]) -> ObsEncoder:
+def encoder(cfg: Any, env: EnvBase, obs_keys: list[str], obs_norm: bool = False) -> ObsEncoder:
     e = cfg.encoder
     return ObsEncoder(env.observation_spec, obs_keys, cnn_channels=tuple(e.cnn_channels), feature_dim=int(e.feature_dim),
-                      cnn_kernels=e.get("cnn_kernels"), cnn_strides=e.get("cnn_strides"))
+                      cnn_kernels=e.get("cnn_kernels"), cnn_strides=e.get("cnn_strides"), obs_norm=obs_norm)
 
 
 def actor(cfg: Any, env: EnvBase, obs_keys: list[str]) -> DeterministicActor:
@@ -270,7 +272,7 @@ def bc_step(loss: LossModule, optim: dict, batch, precision: str = "float32", re
 
 def update(loss: LossModule, optim: dict, updater: SoftUpdate, batch, n_update: int, policy_delay: int, grad_clip: float | None,
            precision: str = "float32", reg: Any = None, actor: bool = True) -> dict:
-    """One gradient step: critic every call; actor and targets every ``policy_delay`` calls.
+    """One gradient step: critic every call; actor (SAC: and its temperature) and targets every ``policy_delay`` calls.
 
     Returns tensors (``loss/...``; no ``.item()``: the loop reads them when it logs). When the batch
     comes from a prioritized buffer (it has ``priority_weight``), the per-sample priority is written
@@ -280,7 +282,7 @@ def update(loss: LossModule, optim: dict, updater: SoftUpdate, batch, n_update: 
     """
     prioritized = loss.tensor_keys.priority_weight in batch.keys()
     with precision_context(precision, batch.device or "cpu"):
-        lq, meta = loss._value_loss(batch, td_error=prioritized)
+        lq, meta = loss.value_loss(batch, td_error=prioritized)
     optim["critic"].zero_grad(set_to_none=True)
     lq.backward()
     if grad_clip:
@@ -291,8 +293,8 @@ def update(loss: LossModule, optim: dict, updater: SoftUpdate, batch, n_update: 
     out = {"loss/qvalue": lq.detach(), **{f"loss/{k}": v for k, v in meta.items()}}
     if actor and n_update % policy_delay == 0:
         with precision_context(precision, batch.device or "cpu"):
-            la, meta_a = loss._actor_loss(batch)
-            action, q = meta_a.pop("_action"), meta_a.pop("_q")
+            la, meta_a = loss.actor_loss(batch)
+            action, q, log_prob = meta_a.pop("_action"), meta_a.pop("_q"), meta_a.pop("_log_prob", None)
             if reg is not None:
                 la, meta_r = actor_regularisers(loss, batch, action, q, la, reg)
                 meta_a.update({k.split("/", 1)[1]: v for k, v in meta_r.items()})
@@ -301,7 +303,36 @@ def update(loss: LossModule, optim: dict, updater: SoftUpdate, batch, n_update: 
         if grad_clip:
             torch.nn.utils.clip_grad_norm_(loss.actor_network.parameters(), grad_clip)
         _step(optim["actor"])
+        if log_prob is not None:  # SAC: the temperature follows the policy's entropy
+            lt = loss.alpha_loss(log_prob)
+            optim["alpha"].zero_grad(set_to_none=True)
+            lt.backward()
+            _step(optim["alpha"])
+            out["loss/alpha_loss"] = lt.detach()
         updater.step()
         out["loss/actor"] = la.detach()
         out.update({f"loss/{k}": v for k, v in meta_a.items()})
     return out
+
+
+# ---------------------------------------------------------------------------------------
+# the factories DDPG, TD3 and D4PG share as they are (``from torcsrl.agents._build import ...``)
+# ---------------------------------------------------------------------------------------
+def make_actor(cfg: Any, env: EnvBase, obs_keys: list[str]):
+    """mu(s) -> action in the env's bounds (:class:`~torcsrl.nets.DeterministicActor`)."""
+    return actor(cfg, env, obs_keys)
+
+
+def make_target_updater(cfg: Any, loss):
+    """Soft target updates (:class:`FusedSoftUpdate`)."""
+    return target_updater(cfg, loss)
+
+
+def make_exploration(cfg: Any, actor, env: EnvBase, obs_keys: list[str]):
+    """Actor -> action noise (``algo.exploration``) -> stochastic brake (:func:`exploration`)."""
+    return exploration(cfg, actor, env, obs_keys)
+
+
+def make_optimizers(cfg: Any, loss):
+    """One Adam per network (:func:`optimizers`)."""
+    return optimizers(cfg, loss)

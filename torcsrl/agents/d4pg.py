@@ -1,10 +1,9 @@
 """D4PG-style agent (Barth-Maron et al. 2018): categorical critic, N-step returns, many actors.
 
-Same factories, in the same order, as ``ddpg.py`` and ``td3.py``; the differences are the
-algorithm's: one critic with ``num_atoms`` logits on ``[v_min, v_max]`` and the distributional
-loss (``torcsrl.objectives.d4pg``). N-step returns (``n_steps``), prioritized replay and many
-actors (``collector.num_workers``) are set up by the training loop from the config.
-Defaults: ``conf/algo/d4pg.yaml``.
+The factories every agent has (``make_actor`` ... ``update``); D4PG writes only where it differs from its siblings:
+one critic with ``num_atoms`` logits on ``[v_min, v_max]`` and the distributional loss (``torcsrl.objectives.d4pg``).
+N-step returns (``n_steps``), prioritized replay and many actors (``collector.num_workers``) are set up by the
+training loop from the config. Defaults: ``conf/algo/d4pg.yaml``.
 """
 
 from __future__ import annotations
@@ -14,14 +13,10 @@ from typing import Any
 from torchrl.envs import EnvBase
 
 from torcsrl.agents import _build
+from torcsrl.agents._build import make_actor, make_exploration, make_optimizers, make_target_updater  # noqa: F401
 from torcsrl.objectives.d4pg import D4PGLoss
 
 NAME = "d4pg"
-
-
-def make_actor(cfg: Any, env: EnvBase, obs_keys: list[str]):
-    """mu(s) -> action in the env's bounds."""
-    return _build.actor(cfg, env, obs_keys)
 
 
 def make_critic(cfg: Any, env: EnvBase, obs_keys: list[str]):
@@ -33,18 +28,6 @@ def make_loss(cfg: Any, actor, critic, env: EnvBase, obs_keys: list[str], critic
     """Cross-entropy to the C51-projected target distribution; actor ascends the expected return."""
     v_min, v_max = _build.value_support(cfg)
     return D4PGLoss(actor, critic, v_min=v_min, v_max=v_max, **_build.loss_kwargs(cfg, env, obs_keys, critic_obs_keys))
-
-
-def make_target_updater(cfg: Any, loss):
-    return _build.target_updater(cfg, loss)
-
-
-def make_exploration(cfg: Any, actor, env: EnvBase, obs_keys: list[str]):
-    return _build.exploration(cfg, actor, env, obs_keys)
-
-
-def make_optimizers(cfg: Any, loss):
-    return _build.optimizers(cfg, loss)
 
 
 def update(cfg: Any, loss, optim, updater, batch, n_update: int, actor: bool = True) -> dict:

@@ -1,8 +1,7 @@
 """DDPG (Lillicrap et al. 2015): one critic, OU exploration (Andersson et al.'s TORCS setting), 400/300 nets.
 
-Same factories, in the same order, as ``td3.py`` and ``d4pg.py``; the differences are the
-algorithm's: one critic (``num_nets=1``), no target policy smoothing, actor and targets
-updated every step. Defaults: ``conf/algo/ddpg.yaml``.
+The factories every agent has (``make_actor`` ... ``update``); DDPG writes only where it differs from its siblings:
+one critic, no target policy smoothing, actor and targets updated every step. Defaults: ``conf/algo/ddpg.yaml``.
 """
 
 from __future__ import annotations
@@ -12,14 +11,10 @@ from typing import Any
 from torchrl.envs import EnvBase
 
 from torcsrl.agents import _build
+from torcsrl.agents._build import make_actor, make_exploration, make_optimizers, make_target_updater  # noqa: F401
 from torcsrl.objectives.td3 import DDPGLoss
 
 NAME = "ddpg"
-
-
-def make_actor(cfg: Any, env: EnvBase, obs_keys: list[str]):
-    """mu(s) -> action in the env's bounds."""
-    return _build.actor(cfg, env, obs_keys)
 
 
 def make_critic(cfg: Any, env: EnvBase, obs_keys: list[str]):
@@ -28,20 +23,8 @@ def make_critic(cfg: Any, env: EnvBase, obs_keys: list[str]):
 
 
 def make_loss(cfg: Any, actor, critic, env: EnvBase, obs_keys: list[str], critic_obs_keys: list[str] | None = None):
-    """DDPG loss: y = r + gamma (1 - terminated) Q'(s', mu'(s'))."""
+    """y = r + gamma (1 - terminated) Q'(s', mu'(s'))."""
     return DDPGLoss(actor, critic, loss_function=cfg.loss_function, **_build.loss_kwargs(cfg, env, obs_keys, critic_obs_keys))
-
-
-def make_target_updater(cfg: Any, loss):
-    return _build.target_updater(cfg, loss)
-
-
-def make_exploration(cfg: Any, actor, env: EnvBase, obs_keys: list[str]):
-    return _build.exploration(cfg, actor, env, obs_keys)
-
-
-def make_optimizers(cfg: Any, loss):
-    return _build.optimizers(cfg, loss)
 
 
 def update(cfg: Any, loss, optim, updater, batch, n_update: int, actor: bool = True) -> dict:

@@ -22,6 +22,8 @@ training loop seeds and checkpoints; per-episode state lives in the collector's 
   perturbed copy of the actor (Gaussian weight noise of std ``sigma``, resampled every
   ``resample_frames`` frames) and adapts ``sigma`` so the action-space distance between the
   perturbed and clean policies stays near ``target_distance``.
+* :class:`PolicySample` — a stochastic actor's own exploration (SAC): while exploring, an action drawn from the
+  tanh-Gaussian policy; otherwise its mean action.
 * :class:`DeviceActorModule` — the actor's ``TensorDictModule`` when the actor lives on another device
   than the env (``device=cuda``): observations go to the actor's device, the action comes back to the CPU.
 """
@@ -211,6 +213,28 @@ class ParamNoiseActor(TensorDictModuleBase):
             self.sigma.mul_(self.adapt if dist < self.target_distance else 1.0 / self.adapt)
         td.set(self.action_key, a_p if on_cpu else a_p.to("cpu"))
         self.frames += max(1, a.numel() // a.shape[-1])
+        return td
+
+
+class PolicySample(TensorDictModuleBase):
+    """Acts with a draw from a stochastic actor (``actor.sample(*obs) -> (action, log_prob, mean)``, SAC's
+    :class:`~torcsrl.nets.TanhGaussianActor`) while exploring, with its deterministic action ``actor(*obs)`` otherwise.
+    Draws come from torch's global generator (seeded and checkpointed by the training loop)."""
+
+    def __init__(self, actor: nn.Module, in_keys: Sequence[str], action_key: str = "action"):
+        super().__init__()
+        self.actor = actor
+        self.in_keys, self.out_keys, self.action_key = list(in_keys), [action_key], action_key
+        self._device = next(actor.parameters()).device
+
+    @torch.no_grad()
+    def forward(self, td: TensorDictBase) -> TensorDictBase:
+        obs = [td.get(k) for k in self.in_keys]
+        on_cpu = self._device.type == "cpu"
+        if not on_cpu:
+            obs = [o.to(self._device, non_blocking=True) for o in obs]
+        a = self.actor.sample(*obs)[0] if _exploring() else self.actor(*obs)
+        td.set(self.action_key, a if on_cpu else a.to("cpu"))
         return td
 
 

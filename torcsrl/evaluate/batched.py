@@ -89,8 +89,8 @@ class _PerCarDraws:
 
 def supports_batch(policy: Policy) -> bool:
     """True when ``policy`` can drive a batch and stay equal to its one-car self: a stateless checkpoint
-    actor (:class:`~torcsrl.agents.networks.DeterministicActor`) on vector observations only."""
-    from torcsrl.agents.networks import DeterministicActor
+    actor (:class:`~torcsrl.nets.DeterministicActor`) on vector observations only."""
+    from torcsrl.nets import DeterministicActor
     from torcsrl.policies import CheckpointPolicy
 
     return (isinstance(policy, CheckpointPolicy) and type(policy.actor) is DeterministicActor

@@ -8,7 +8,7 @@ import torch
 from tensordict import TensorDictBase, TensorDictParams
 from torch import nn
 
-from torcsrl.agents.networks import random_shift
+from torcsrl.nets import random_shift
 
 
 def bind_target(module: nn.Module, target_params: TensorDictParams) -> nn.Module:

@@ -1,0 +1,68 @@
+"""Networks new with SAC and PPO: the tanh-Gaussian actor's density, the critics' detached pass, running statistics."""
+
+import pytest
+import torch
+
+from torcsrl.envs.toy import make_toy_env
+from torcsrl.nets import Critic, ObsEncoder, RunningNorm, TanhGaussianActor
+
+
+@pytest.mark.parametrize("bounds", [(-1.0, 1.0), (-2.0, 0.5)])
+@pytest.mark.parametrize("state_dependent_std", [True, False])
+def test_tanh_gaussian_log_prob_equals_torchrl_tanh_normal(bounds, state_dependent_std):
+    from torchrl.modules import TanhNormal
+
+    torch.manual_seed(0)
+    env = make_toy_env()
+    keys = ["rangefinder", "state"]
+    low, high = torch.full((2,), bounds[0]), torch.full((2,), bounds[1])
+    actor = TanhGaussianActor(ObsEncoder(env.observation_spec, keys), low, high, (16,), state_dependent_std=state_dependent_std)
+    obs = [torch.rand(64, 19) * 50, torch.randn(64, 6)]
+    a, logp, mean = actor.sample(*obs)
+    loc, std = actor.dist(*obs)
+    ref = TanhNormal(loc, std, low=low, high=high)
+    torch.testing.assert_close(logp, ref.log_prob(a), rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(mean, ref.deterministic_sample)
+    torch.testing.assert_close(actor(*obs), mean)  # what evaluation drives
+    assert ((a >= low) & (a <= high)).all()
+    a.sum().backward()  # reparameterised: the draw carries gradients to the actor
+    assert all(p.grad is not None for p in actor.net.parameters())
+
+
+def test_critic_detached_equals_forward_and_has_no_param_grad():
+    torch.manual_seed(0)
+    env = make_toy_env()
+    critic = Critic(ObsEncoder(env.observation_spec, ["rangefinder", "state"]), 2, (16, 16), num_nets=2)
+    obs = [torch.rand(8, 19) * 50, torch.randn(8, 6)]
+    action = torch.rand(8, 2, requires_grad=True)
+    q = critic.detached(*obs, action)
+    torch.testing.assert_close(q, critic(*obs, action))
+    q.sum().backward()
+    assert action.grad is not None and all(p.grad is None for p in critic.parameters())
+
+
+def test_running_norm_merges_batches_like_one_pass_and_saves_its_statistics():
+    torch.manual_seed(0)
+    x = torch.randn(300, 5) * torch.tensor([1.0, 2, 3, 4, 5]) + 7
+    norm = RunningNorm(5)
+    for chunk in x.split([1, 99, 200]):
+        norm.update(chunk)
+    torch.testing.assert_close(norm.mean, x.double().mean(0))
+    torch.testing.assert_close(norm.var, x.double().var(0, unbiased=False))
+    y = norm(x)
+    torch.testing.assert_close(y.mean(0), torch.zeros(5), atol=1e-5, rtol=0)
+    other = RunningNorm(5)
+    other.load_state_dict(norm.state_dict())
+    torch.testing.assert_close(other(x), y)
+
+
+def test_encoder_obs_norm_standardises_the_scaled_vectors():
+    env = make_toy_env()
+    keys = ["rangefinder", "state"]
+    enc, plain = ObsEncoder(env.observation_spec, keys, obs_norm=True), ObsEncoder(env.observation_spec, keys)
+    obs = [torch.rand(256, 19) * 50, torch.randn(256, 6)]
+    torch.testing.assert_close(enc(*obs), plain(*obs))  # no statistics yet: the identity
+    enc.update_norm(*obs)
+    out = enc(*obs)
+    torch.testing.assert_close(out.mean(0), torch.zeros(out.shape[-1]), atol=1e-4, rtol=0)
+    assert "norm.mean" in enc.state_dict() and "norm.mean" not in plain.state_dict()

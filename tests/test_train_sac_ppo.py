@@ -1,0 +1,101 @@
+"""SAC and PPO through train(cfg): smoke runs (vectors and pixels), exact resume, demonstrations and smoothness (SAC),
+evaluation like the other drivers, and one-line refusals of the options that do not apply to them."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from torcsrl.config import ConfigError, validate
+from torcsrl.train import train
+from torcsrl.utils.logging import read_csv_metric
+
+ROOT = Path(__file__).resolve().parents[1]
+CONF = str(ROOT / "conf")
+PIXELS = ["env.sensors=[rangefinder,state,pixels]", "algo.encoder.augment_shift=2", "checkpoint.buffer=false"]
+PPO = ["algo.rollout_steps=50", "algo.epochs=2", "algo.batch_size=32"]  # rollouts of 50 steps a car, 2 epochs of minibatches of 32
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    torch.set_num_threads(1)
+
+
+def cfg_for(*overrides: str, env: str = "toy"):
+    extra = ["env=toy"] if env == "toy" else ["env.track=oval", "env.max_steps=200", "eval.max_steps=30"]
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        return compose("train", overrides=[*extra, "debug=smoke", *overrides])
+
+
+@pytest.mark.parametrize("algo,extra", [("sac", PIXELS), ("ppo", [*PPO, *PIXELS[:2]])], ids=["sac-pixels", "ppo-pixels"])
+def test_smoke(tmp_path, algo, extra):
+    r = train(cfg_for(f"algo={algo}", f"run_dir={tmp_path}", "total_frames=150", "logger.every_frames=50", *extra))
+    assert r["frames"] >= 150 and r["updates"] > 0
+    key = "loss/qvalue" if algo == "sac" else "loss/critic"
+    rows = read_csv_metric(tmp_path, key)
+    assert len(rows) >= 2 and all(math.isfinite(v) for _, v in rows) and len({v for _, v in rows}) > 1  # the losses move
+    if algo == "sac":
+        alpha = [v for _, v in read_csv_metric(tmp_path, "loss/alpha")]
+        assert alpha and alpha[-1] != 1.0  # the temperature is tuned
+    else:
+        assert read_csv_metric(tmp_path, "loss/objective") and read_csv_metric(tmp_path, "loss/entropy")
+    assert Path(r["checkpoint"]).is_file()
+
+
+@pytest.mark.parametrize("algo,extra", [("sac", []), ("ppo", [*PPO, "env.num_cars=2"])], ids=["sac-vector", "ppo-vector-2cars"])
+def test_exact_resume(tmp_path, algo, extra):
+    """Vector observations (PPO: two cars in one env): the losses move, and a run stopped at a checkpoint and resumed
+    logs exactly what the uninterrupted run logs."""
+    ov = [f"algo={algo}", *extra, "checkpoint.every_frames=200", "logger.every_frames=50", "eval.every_episodes=1"]
+    ref = train(cfg_for(*ov, "total_frames=400", f"run_dir={tmp_path / 'ref'}"))
+    train(cfg_for(*ov, "total_frames=200", f"run_dir={tmp_path / 'cut'}"))
+    res = train(cfg_for(*ov, "total_frames=400", f"run_dir={tmp_path / 'cut'}", "checkpoint.resume=latest"))
+    keys = ["frames", "updates", "episodes"] + (["loss/qvalue", "loss/actor", "loss/alpha"] if algo == "sac" else
+                                                ["loss/objective", "loss/critic"])
+    for k in keys:
+        assert res[k] == ref[k], k
+    for m in ("loss/qvalue" if algo == "sac" else "loss/critic", "eval/reward", "train/episode_reward"):
+        assert read_csv_metric(tmp_path / "cut", m) == read_csv_metric(tmp_path / "ref", m), m
+    rows = read_csv_metric(tmp_path / "ref", "loss/qvalue" if algo == "sac" else "loss/critic")
+    assert len(rows) >= 2 and all(math.isfinite(v) for _, v in rows) and len({v for _, v in rows}) > 1  # the losses move
+    if algo == "sac":
+        assert read_csv_metric(tmp_path / "ref", "loss/alpha")[-1][1] != 1.0  # the temperature is tuned
+
+
+def test_race_env_sac_with_demonstrations_and_smoothness_and_ppo_evaluate_like_the_others(tmp_path):
+    """SAC learns beside demonstrations (RLPD rows, the TD3+BC term, BC pre-training) with the CAPS terms; SAC's and
+    PPO's checkpoints drive as CheckpointPolicy (the mean action; PPO's observation statistics come with it)."""
+    from torcsrl.demos import write_demos
+    from torcsrl.policies import CheckpointPolicy
+
+    demos = write_demos(cfg_for("demos.sigma_max=0.3", "demos.episode_steps=100", env="race"), tmp_path / "demos", frames=120, seed=5)
+    sac = train(cfg_for("algo=sac", f"demos.path={demos}", "demos.bc_weight=0.4", "demos.pretrain_steps=10", "demos.critic_pretrain_steps=5",
+                        "algo.smooth.temporal=0.2", "algo.smooth.spatial=0.2", "total_frames=150", f"run_dir={tmp_path / 'sac'}", env="race"))
+    assert sac["updates"] > 0 and math.isfinite(sac["loss/bc"]) and math.isfinite(sac["loss/smooth_temporal"])
+    ppo = train(cfg_for("algo=ppo", *PPO, "env.num_cars=2", "total_frames=200", f"run_dir={tmp_path / 'ppo'}", env="race"))
+    for r, algo in ((sac, "sac"), (ppo, "ppo")):
+        pol = CheckpointPolicy(r["checkpoint"])
+        assert pol.algo == algo
+        obs = {k: torch.rand(*shape) for k, shape in pol.obs_shapes.items()}
+        a = pol._act(*obs.values())
+        torch.testing.assert_close(a, pol._act(*obs.values()))  # deterministic
+        assert a.shape == (2,) and a.abs().max() <= 1
+    ck = torch.load(ppo["checkpoint"], weights_only=False)
+    assert float(ck["actor"]["encoder.norm.count"]) > 0  # the statistics the policy was trained with
+
+
+@pytest.mark.parametrize("overrides,line", [
+    (["algo=sac", "algo.exploration.kind=ou"], "algo.exploration.kind=ou: algo=sac explores by sampling its own policy"),
+    (["algo=sac", "algo.exploration.sigma=0.3"], "algo.exploration.sigma=0.3: noise settings do not apply to algo=sac"),
+    (["algo=sac", "algo.policy_noise=0.2"], "algo.policy_noise=0.2: TD3's target policy smoothing does not apply to algo=sac"),
+    (["algo=ppo", "demos.frames=100"], "demos: algo=ppo learns on-policy from its own rollouts and does not support demonstrations"),
+    (["algo=ppo", "buffer.prioritized=true"], "buffer.prioritized=true: algo=ppo has no replay buffer and does not support prioritised"),
+])
+def test_options_that_do_not_apply_are_refused_in_one_line(overrides, line):
+    with pytest.raises(ConfigError) as err:
+        validate(cfg_for(*overrides))
+    assert str(err.value).count("\n") == 0 and line in str(err.value)

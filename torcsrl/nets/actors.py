@@ -1,0 +1,126 @@
+"""Actors: the deterministic mu(s) of DDPG, TD3 and D4PG, and the tanh-Gaussian policy of SAC and PPO.
+
+Both map an :class:`~torcsrl.nets.encoders.ObsEncoder`'s features through an MLP and a tanh into the
+action bounds, and both are called the same way for evaluation: ``actor(*obs) -> action``, deterministic
+(the tanh-Gaussian actor's mean action), so validation, evaluation, the report and export treat every
+algorithm's driver alike (:class:`torcsrl.policies.CheckpointPolicy`).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from torcsrl.nets.encoders import ObsEncoder, mlp
+
+class DeterministicActor(nn.Module):
+    """mu(s): encoder -> MLP -> tanh, rescaled to the action bounds ``[low, high]``.
+
+    Args:
+        encoder: an :class:`ObsEncoder` (owned by the actor; the critic has its own).
+        action_low, action_high: action bounds (from the env's action spec).
+        hidden: hidden layer sizes.
+    """
+
+    def __init__(self, encoder: ObsEncoder, action_low: torch.Tensor, action_high: torch.Tensor, hidden: Sequence[int]):
+        super().__init__()
+        self.encoder = encoder
+        self.net = mlp(encoder.out_dim, hidden, action_low.numel())
+        self.register_buffer("a_mid", ((action_high + action_low) / 2).float())
+        self.register_buffer("a_half", ((action_high - action_low) / 2).float())
+        self._unit = bool((self.a_mid == 0).all() and (self.a_half == 1).all())
+
+    def forward(self, *obs: torch.Tensor) -> torch.Tensor:
+        return self.act(self.encoder(*obs))
+
+    def act(self, x: torch.Tensor) -> torch.Tensor:
+        """The action from the encoder's features ``x`` (``forward`` = ``act(encoder(*obs))``)."""
+        *hidden, last = self._linears()
+        for lin in hidden:  # self.net, without a module call per layer (~5 us each)
+            x = F.linear(x, lin.weight, lin.bias).relu_()
+        a = torch.tanh(F.linear(x, last.weight, last.bias))
+        return a if self._unit else self.a_mid + self.a_half * a
+
+    def _linears(self) -> list[nn.Linear]:
+        lins = self.__dict__.get("_lins")
+        if lins is None:
+            lins = self.__dict__["_lins"] = [m for m in self.net if isinstance(m, nn.Linear)]
+        return lins
+
+
+
+
+class TanhGaussianActor(nn.Module):
+    """pi(a|s): encoder -> MLP -> (loc, std) of a Gaussian, squashed by tanh into the action bounds ``[low, high]``.
+
+    ``forward(*obs)`` is the DETERMINISTIC action ``mid + half * tanh(loc)`` (evaluation, export, validation);
+    :meth:`sample` draws ``a = mid + half * tanh(loc + std * eps)`` with the reparameterisation trick and returns its
+    log-density (SAC); :meth:`dist` gives (loc, std) for TorchRL's ``TanhNormal`` (PPO).
+
+    Args:
+        encoder: an :class:`ObsEncoder` (owned by the actor).
+        action_low, action_high: action bounds (from the env's action spec).
+        hidden: hidden layer sizes.
+        state_dependent_std: the std is an output of the network (SAC, log std squashed into
+            ``[log_std_min, log_std_max]`` as in CleanRL/SpinningUp) or one learnt parameter per action dimension
+            (PPO, SB3's and TorchRL's default for PPO; starts at ``exp(log_std_init)``).
+        log_std_min, log_std_max, log_std_init: bounds and start of ``log std`` [log action units].
+    """
+
+    def __init__(self, encoder: ObsEncoder, action_low: torch.Tensor, action_high: torch.Tensor, hidden: Sequence[int],
+                 state_dependent_std: bool = True, log_std_min: float = -5.0, log_std_max: float = 2.0, log_std_init: float = 0.0):
+        super().__init__()
+        self.encoder = encoder
+        n = action_low.numel()
+        self.action_dim = n
+        self.state_dependent_std = bool(state_dependent_std)
+        self.net = mlp(encoder.out_dim, hidden, 2 * n if self.state_dependent_std else n)
+        if not self.state_dependent_std:
+            self.log_std = nn.Parameter(torch.full((n,), float(log_std_init)))
+        self.log_std_min, self.log_std_max = float(log_std_min), float(log_std_max)
+        self.register_buffer("a_mid", ((action_high + action_low) / 2).float())
+        self.register_buffer("a_half", ((action_high - action_low) / 2).float())
+        self._unit = bool((self.a_mid == 0).all() and (self.a_half == 1).all())
+
+    def forward(self, *obs: torch.Tensor) -> torch.Tensor:
+        return self.act(self.encoder(*obs))
+
+    def act(self, x: torch.Tensor) -> torch.Tensor:
+        """The deterministic action from the encoder's features ``x``: ``mid + half * tanh(loc)``."""
+        a = torch.tanh(self.net(x)[..., : self.action_dim])
+        return a if self._unit else self.a_mid + self.a_half * a
+
+    def dist_params(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(loc, std) of the pre-tanh Gaussian from the encoder's features ``x``."""
+        out = self.net(x)
+        if self.state_dependent_std:
+            loc, log_std = out.chunk(2, -1)
+            log_std = self.log_std_min + 0.5 * (self.log_std_max - self.log_std_min) * (torch.tanh(log_std) + 1)
+        else:
+            loc, log_std = out, self.log_std.clamp(self.log_std_min, self.log_std_max).expand_as(out)
+        return loc, log_std.exp()
+
+    def dist(self, *obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(loc, std) of the pre-tanh Gaussian at ``obs``."""
+        return self.dist_params(self.encoder(*obs))
+
+    def sample(self, *obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(a, log pi(a|s), deterministic action), ``a`` reparameterised (gradients flow through it).
+
+        ``log pi(a|s) = log N(u; loc, std) - sum log(half * (1 - tanh(u)^2))`` with ``u`` the pre-tanh draw, the
+        Jacobian term in the stable form ``2 (log 2 - u - softplus(-2u))``; the same density as TorchRL's
+        ``TanhNormal(loc, std, low, high).log_prob(a)`` (tested)."""
+        loc, std = self.dist(*obs)
+        eps = torch.randn_like(loc)
+        u = loc + std * eps
+        logp = (-0.5 * eps.pow(2) - std.log() - 0.5 * math.log(2 * math.pi)).sum(-1)
+        logp = logp - (2 * (math.log(2) - u - F.softplus(-2 * u))).sum(-1)
+        a, a_det = torch.tanh(u), torch.tanh(loc)
+        if not self._unit:
+            a, a_det = self.a_mid + self.a_half * a, self.a_mid + self.a_half * a_det
+            logp = logp - self.a_half.log().sum()
+        return a, logp, a_det

@@ -1,0 +1,230 @@
+"""The on-policy loop (``algo=ppo``): collect a batch of rollouts, then several epochs of minibatches.
+
+It reads in the order PPO runs, beside :func:`torcsrl.train.train` (which it shares env, validation, logging and
+checkpoint pieces with): env (``env.num_cars`` cars in one world), agent (tanh-Gaussian actor, value network), loss
+(TorchRL's ``ClipPPOLoss`` with ``GAE``), collector (:class:`~torcsrl.utils.collector.StepCollector`, batches of
+``rollout_steps`` steps of every car, time last), optimisers; then per batch: GAE advantages and value targets ->
+``epochs`` passes of shuffled minibatches of ``batch_size`` (:func:`torcsrl.agents.ppo.update`) -> the observation
+statistics take in the batch (after the epochs, so the update sees the statistics the batch was collected with) ->
+log -> periodic deterministic validation (the mean action) -> checkpoint.
+
+Resuming restores networks (observation statistics included), optimisers, counters, every RNG, the collector's
+in-flight step and the env's simulation: on CPU with an env that has ``get_sim_state`` a resumed run continues exactly
+as the uninterrupted one would have. A checkpoint is written only between batches, so no rollout is ever half-kept.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from tensordict.nn import TensorDictModule
+
+from torcsrl import agents
+from torcsrl.train import (
+    Counters,
+    _check_same_env,
+    _lap_keys,
+    _set_sim_state,
+    _sim_state,
+    expected_meta,
+    make_eval_envs,
+    make_networks,
+    make_train_env,
+    pipeline_record,
+    plain,
+    validate_all,
+)
+from torcsrl.utils.checkpoint import CheckpointError, checkpoint_path, latest_checkpoint, load_checkpoint, previous_good, prune, save_checkpoint
+from torcsrl.utils.collector import StepCollector
+from torcsrl.utils.logging import Progress, log_metrics, make_loggers, truncate_csv_after
+from torcsrl.utils.seeding import rng_state, seed_everything, set_rng_state
+from torcsrl.utils.threads import configure_threads
+
+
+def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
+    """Train ``algo=ppo`` on ``cfg.env`` in ``run_dir`` (held by :func:`torcsrl.train.train`); returns the final metrics."""
+    ckpt_dir = run_dir / "checkpoints"
+    threads = configure_threads(cfg.threads, 0)
+    seed_everything(int(cfg.seed))
+    agent = agents.get(cfg.algo.name)
+    obs_keys = list(cfg.obs_keys or cfg.env.sensors)
+    total = int(cfg.total_frames)
+    device = torch.device(str(cfg.device))
+
+    env = make_train_env(cfg)
+    actor, critic, loss = make_networks(cfg, agent, env, obs_keys, device)
+    policy = agent.make_exploration(cfg.algo, actor, env, obs_keys)
+    optim = agent.make_optimizers(cfg.algo, loss)
+    cars = max(1, env.batch_size.numel())
+    collector = StepCollector(env, policy, cars * int(cfg.algo.rollout_steps))
+    eval_envs = make_eval_envs(cfg)
+    eval_policy = TensorDictModule(actor, in_keys=obs_keys, out_keys=["action"])  # the mean action
+    meta = expected_meta(cfg, env, obs_keys)
+    counters = Counters(next_eval=int(cfg.eval.every_episodes), next_ckpt=int(cfg.checkpoint.every_frames) or total,
+                        next_log=int(cfg.logger.every_frames))
+    state = dict(cfg=cfg, ckpt_dir=ckpt_dir, meta=meta, loss=loss, actor=actor, critic=critic, optim=optim, collector=collector,
+                 env=env, eval_envs=eval_envs, threads=threads)
+    if cfg.checkpoint.resume:
+        counters = _resume(counters=None, run_dir=run_dir, **state)
+    loggers = make_loggers(cfg.logger["backends"], run_dir, cfg.logger.exp_name, cfg.logger.wandb_project, cfg.logger.wandb_mode)
+    progress = Progress(total, enabled=bool(cfg.progress))
+    print(f"[torcsrl] training ppo on env={cfg.env.name} ({cars} cars) for {total} steps; outputs in {run_dir}", file=sys.stderr)
+
+    hot = plain(cfg.algo)
+    epochs, minibatch = int(cfg.algo.epochs), int(cfg.algo.batch_size)
+    encoders = [m.encoder for m in (actor, critic) if m.encoder.norm is not None]
+    last: dict[str, Any] = {}
+    eval_metrics: dict[str, float] = {}
+    t_start, cpu_start = time.perf_counter(), time.process_time()
+    max_wall_s = 60.0 * float(cfg.max_minutes) if cfg.get("max_minutes") else 0.0
+    t_win, f_win, u_win = t_start, counters.frames, counters.updates
+    ep_rewards, ep_laps = [], []
+    try:
+        batches = iter(collector)
+        while counters.frames < total:
+            if max_wall_s and time.perf_counter() - t_start > max_wall_s:
+                print(f"[torcsrl] wall-clock budget of {cfg.max_minutes} min reached at {counters.frames} steps", file=sys.stderr)
+                _save(counters=counters, **state)
+                break
+            # collect a batch of rollouts: [cars, rollout_steps] (one car: [rollout_steps])
+            data = next(batches)
+            done = data["next", "done"].squeeze(-1)
+            if done.any():
+                ep_rewards += data["next", "episode_reward"].squeeze(-1)[done].tolist()
+                lap_key, _ = _lap_keys(data["next"])
+                if lap_key is not None:
+                    ep_laps += data["next", lap_key].squeeze(-1)[done].tolist()
+                counters.episodes += int(done.sum())
+            counters.frames += data.numel()
+
+            # advantages (GAE) and value targets with the networks that collected the batch
+            with torch.no_grad():
+                loss.value_estimator(data)
+            # epochs of shuffled minibatches
+            flat = data.reshape(-1)
+            for _ in range(epochs):
+                for idx in torch.randperm(flat.numel()).split(minibatch):
+                    last = agent.update(hot, loss, optim, None, flat[idx], counters.updates)
+                    counters.updates += 1
+            # the observation statistics take in the batch (for the next rollout and update)
+            for enc in encoders:
+                enc.update_norm(*[data.get(k) for k in obs_keys])
+
+            # log
+            if counters.frames >= counters.next_log:
+                now = time.perf_counter()
+                sps = (counters.frames - f_win) / max(now - t_win, 1e-9)
+                metrics = {k: float(v) for k, v in last.items()}
+                metrics.update({"train/frames": counters.frames, "train/episodes": counters.episodes,
+                                "time/steps_per_s": sps, "time/updates_per_s": (counters.updates - u_win) / max(now - t_win, 1e-9),
+                                "time/elapsed_s": now - t_start, "time/cpu_s": time.process_time() - cpu_start})
+                if ep_rewards:
+                    metrics["train/episode_reward"] = sum(ep_rewards) / len(ep_rewards)
+                    if ep_laps:
+                        metrics["train/laps"] = sum(ep_laps) / len(ep_laps)
+                    ep_rewards, ep_laps = [], []
+                log_metrics(loggers, {k: v for k, v in metrics.items() if not k.startswith("time/")}, counters.frames)
+                log_metrics(loggers, {k: v for k, v in metrics.items() if k.startswith("time/")}, counters.frames)
+                progress.update(counters.frames, sps)
+                t_win, f_win, u_win = now, counters.frames, counters.updates
+                while counters.next_log <= counters.frames:
+                    counters.next_log += int(cfg.logger.every_frames)
+
+            # periodic deterministic validation (the policy's mean action)
+            if counters.episodes >= counters.next_eval:
+                eval_metrics = validate_all(eval_envs, eval_policy, int(cfg.eval.episodes), int(cfg.eval.max_steps))
+                log_metrics(loggers, eval_metrics, counters.frames)
+                progress.eval_text = f"reward {eval_metrics['eval/reward']:.2f}, laps {eval_metrics['eval/laps']:.1f}"
+                while counters.next_eval <= counters.episodes:
+                    counters.next_eval += int(cfg.eval.every_episodes)
+
+            # checkpoint
+            if counters.frames >= counters.next_ckpt or counters.frames >= total:
+                every = int(cfg.checkpoint.every_frames) or total
+                while counters.next_ckpt <= counters.frames:
+                    counters.next_ckpt += every
+                _save(counters=counters, **state)
+        progress.update(counters.frames, (counters.frames - f_win) / max(time.perf_counter() - t_win, 1e-9), force=True)
+    finally:
+        progress.close()
+        for e in (env, *eval_envs.values()):
+            if not e.is_closed:
+                e.close()
+        for lg in loggers if "loggers" in locals() else []:
+            exp = getattr(lg, "experiment", None)
+            for f in getattr(exp, "files", {}).values():
+                f.close()
+    wall = time.perf_counter() - t_start
+    newest = latest_checkpoint(ckpt_dir)
+    result = {"frames": counters.frames, "updates": counters.updates, "episodes": counters.episodes, "wall_s": wall,
+              "run_dir": str(run_dir), "checkpoint": str(newest) if newest else None,
+              **{k: float(v) for k, v in last.items()}, **eval_metrics}
+    print(f"[torcsrl] done: {counters.frames} steps, {counters.episodes} episodes in {wall:.1f} s; outputs in {run_dir}\n"
+          f"[torcsrl] resume: python -m torcsrl.train run_dir={run_dir} checkpoint.resume=latest total_frames=<more>", file=sys.stderr)
+    return result
+
+
+def _save(cfg, ckpt_dir, meta, counters, loss, actor, critic, optim, collector, env, eval_envs, threads) -> Path:
+    path = checkpoint_path(ckpt_dir, counters.frames)
+    save_checkpoint(path, {
+        "meta": {**meta, "pipeline": pipeline_record(cfg, env)},
+        "counters": asdict(counters),
+        "loss": loss.state_dict(),
+        "actor": actor.state_dict(),  # what CheckpointPolicy and init.actor load (observation statistics included)
+        "critic": critic.state_dict(),
+        "optim": {k: o.state_dict() for k, o in optim.items()},
+        "rng": rng_state(),
+        "collector": {"state": collector.state_dict(), "env": _sim_state(env)},
+        "eval_envs": {name: _sim_state(e) for name, e in eval_envs.items()},
+        "buffer_dir": None,
+        "threads": threads,
+        "config": OmegaConf.to_yaml(cfg),
+    })
+    prune(ckpt_dir, int(cfg.checkpoint.keep))
+    return path
+
+
+def _resume(cfg, ckpt_dir, meta, counters, loss, actor, critic, optim, collector, env, eval_envs, threads, run_dir) -> Counters:
+    latest = cfg.checkpoint.resume == "latest"
+    path = latest_checkpoint(ckpt_dir) if latest else Path(cfg.checkpoint.resume)
+    if path is None:
+        raise CheckpointError(f"checkpoint.resume=latest but {ckpt_dir} holds no checkpoint")
+    try:
+        ck = load_checkpoint(path, expect=meta)
+    except CheckpointError as err:
+        if not latest or "corrupt" not in str(err):
+            raise
+        good = previous_good(ckpt_dir, path)
+        hint = (f"; the previous good one is {good}: resume with checkpoint.resume={good}" if good
+                else "; no older intact checkpoint is left in " + str(ckpt_dir))
+        raise CheckpointError(f"{err}{hint}") from None
+    _check_same_env(cfg, ck, path)
+    loss.load_state_dict(ck["loss"])
+    actor.load_state_dict(ck["actor"])  # in place: the loss holds the same tensors
+    critic.load_state_dict(ck["critic"])
+    for k, o in optim.items():
+        o.load_state_dict(ck["optim"][k])
+    if ck["collector"]["env"] is not None:
+        collector.load_state_dict(ck["collector"]["state"])
+        _set_sim_state(env, ck["collector"]["env"])
+    else:
+        collector.load_state_dict(ck["collector"]["state"], carrier=False)
+        print("[torcsrl] this env has no get_sim_state: the in-flight episode restarts (exact resume needs it)", file=sys.stderr)
+    if set(ck["eval_envs"]) != set(eval_envs):
+        raise CheckpointError(f"checkpoint {path} validated on other envs than this config (eval.per_track / the track list changed)")
+    for name, e in eval_envs.items():
+        _set_sim_state(e, ck["eval_envs"][name])
+    if ck["threads"] != torch.get_num_threads():
+        print(f"[torcsrl] using the checkpoint's {ck['threads']} threads (float results depend on it)", file=sys.stderr)
+        torch.set_num_threads(int(ck["threads"]))
+    counters = Counters(**ck["counters"])
+    truncate_csv_after(run_dir, counters.frames)
+    set_rng_state(ck["rng"])
+    print(f"[torcsrl] resumed from {path} at {counters.frames} steps", file=sys.stderr)
+    return counters
