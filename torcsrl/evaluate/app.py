@@ -251,7 +251,7 @@ def main(argv: Sequence[str] | None = None) -> int:
               "(run it again for the full evaluation)", file=sys.stderr)
         return exit_code(err)
     out = Path(res["files"][0]).parent
-    print((out / "evaluation.md").read_text())
+    print((out / ("race.md" if (out / "race.md").exists() and not (out / "evaluation.md").exists() else "evaluation.md")).read_text())
     print(f"evaluation: {out}")
     return 0
 

@@ -192,5 +192,5 @@ def evaluate_race(policy: str | Policy, tracks: str | Sequence[str], surfaces: A
         write_json(result, out / "race.json")
         result["files"] = [str(out / "race.md"), str(out / "race.csv"), str(out / "race_episodes.csv"), str(out / "race.json"), *files]
         if verbose:
-            print("\n".join(md[:6]), file=sys.stderr)
+            print(f"[torcsrl.evaluate] wrote {out} ({len(result['files'])} files)", file=sys.stderr)
     return result
