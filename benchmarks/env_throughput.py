@@ -1,6 +1,6 @@
 """Env throughput: torcsrl's faces beside the raw physics of the same car and installed peers.
 
-    python benchmarks/env_throughput.py [--steps 3000] [--quick]
+    python benchmarks/env_throughput.py [--steps 3000] [--quick] [--race]
 
 One process, one thread, everything measured in the same run (ratios are what to compare; the
 machine is shared and absolute figures move). Observations: rangefinder + state. Peers are
@@ -11,6 +11,10 @@ Goals (issue 4): >= 2,000 steps/s for one car; >= 5,000 car-steps/s batched at N
 overhead (env step - raw physics step) <= 1.5x the raw physics step of its own car. Both the
 overhead ratio and the plain env/physics ratio are printed. The raw physics of 32 cars is measured
 with the cars overlapping on one spot, as the env's cars do on a shared grid.
+
+``--race`` (issue 20): a 4-car race env (1 learner + 3 scripted experts at 85 % pace, chassis colliding, the
+opponents sensor on) beside the one-car env, in car-steps/s (every simulated car counts); goal >= 0.5x. Also a
+batched race (N = 8 learners, each with its 3 opponents).
 """
 
 from __future__ import annotations
@@ -82,10 +86,12 @@ def gym_env(steps: int) -> float:
     return r
 
 
-def torchrl_env(n_cars: int, steps: int) -> float:
+def torchrl_env(n_cars: int, steps: int, traffic: dict | None = None) -> float:
+    """car-steps/s of the TorchRL env (with ``traffic``: every car of the race counts, opponents included)."""
     from torcsrl.envs import make_env
 
-    env = make_env(track="road_flow", num_cars=n_cars, seed=0, batched=n_cars > 1)
+    kw = {} if traffic is None else {"traffic": traffic, "sensors": ("rangefinder", "state", "opponents")}
+    env = make_env(track="road_flow", num_cars=n_cars, seed=0, batched=n_cars > 1, **kw)
     td = env.reset()
     shape = (n_cars, 2) if n_cars > 1 else (2,)
     td["action"] = torch.tensor([0.0, 0.3]).expand(shape).clone()
@@ -97,9 +103,12 @@ def torchrl_env(n_cars: int, steps: int) -> float:
         state["td"] = nxt
         return False
 
-    r = _rate(step, steps) * n_cars
+    r = _rate(step, steps) * env.core.n
     env.close()
     return r
+
+
+RACE = {"opponents": 3, "driver": {"kind": "expert", "pace": 0.85}, "start": "grid", "order": "random"}
 
 
 def car_racing(steps: int) -> float | None:
@@ -145,8 +154,19 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--steps", type=int, default=3000, help="control steps per measurement")
     ap.add_argument("--quick", action="store_true", help="fewer steps and no peers (a smoke run)")
+    ap.add_argument("--race", action="store_true", help="only the race comparison: 4-car race env vs the 1-car env")
     args = ap.parse_args(argv)
     n = 300 if args.quick else args.steps
+    if args.race:
+        one = torchrl_env(1, n)
+        race = torchrl_env(1, n, RACE)
+        race8 = torchrl_env(8, max(50, n // 8), RACE)
+        print(f"\n{'what':55s} {'rate':>10s}  unit")
+        print(f"{'TorchRL env, 1 car':55s} {one:10.0f}  car-steps/s")
+        print(f"{'TorchRL race env, 1 learner + 3 experts (4 cars)':55s} {race:10.0f}  car-steps/s")
+        print(f"{'TorchRL batched race, 8 learners x 4 cars':55s} {race8:10.0f}  car-steps/s")
+        print(f"\n  4-car race / 1-car env: {race / one:5.2f}x car-steps/s   (goal >= 0.5x)")
+        return 0
     rows: list[tuple[str, float | None, str]] = []
     phys1 = raw_physics(1, n)
     rows.append(("raw physics, 1 car (CarFleet, 50 Hz, 4 x 200 Hz)", phys1, "car-steps/s"))

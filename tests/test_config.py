@@ -41,6 +41,7 @@ FOOTPRINT = {
     "track": ("env.track", "env.procedural"),
     "reward": ("env.reward",),
     "vehicle": ("env.vehicle", "env.vehicle_overrides"),
+    "traffic": ("env.traffic",),
 }
 #: the groups of the combination test
 PRODUCT = ("algo", "sensors", "degradation", "surface")
@@ -129,7 +130,7 @@ def test_every_group_option_validates_on_its_own(composed):
     base, out = composed
     for (group, opt), cfg in out.items():
         found = problems(cfg)
-        assert found == [] or group == "degradation" and opt.startswith(("camera.", "weather.night")), (group, opt, found)
+        assert found == [] or group == "degradation" and opt.startswith(("camera.", "weather.night", "opponents.")), (group, opt, found)
     # and the values reach make_env's keywords
     assert out["track", "heldout_set"]["env"]["track"] == "set:heldout"
     assert out["track", "generated"]["env"]["track"] == "gen-7"
@@ -187,6 +188,7 @@ def test_every_degradation_option_degrades_sensor_readings(composed):
         "state": torch.rand(2, len(STATE_SLOTS), generator=gen),
         "pixels": (torch.rand(2, 3, 32, 32, generator=gen) * 255).to(torch.uint8),
         "depth": torch.rand(2, 1, 32, 32, generator=gen) * 80 + 1,
+        "opponents": torch.where(torch.rand(2, 36, generator=gen) < 0.2, torch.rand(2, 36, generator=gen) * 150, torch.full((2, 36), 200.0)),
     }, batch_size=[2])
     for opt in options("degradation"):
         stack = out["degradation", opt]["degradation"]["stack"]

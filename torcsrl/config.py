@@ -597,6 +597,15 @@ def _check_race_env(env: Mapping, key, mine, out: list[str]) -> None:
                     out.append(_unknown(f"{key('vehicle_overrides')}.{k}", k, fields, "torcsrl.envs.vehicle.VehicleParams"))
     if mine("camera"):
         _check_camera(env.get("camera"), key("camera"), out)
+    if mine("traffic") and env.get("traffic") is not None:
+        from torcsrl.envs.traffic import TrafficError, TrafficSpec, _load_opponent_policy
+
+        try:
+            spec = TrafficSpec.from_config(env["traffic"])
+            for pol in spec.policy_specs():
+                _load_opponent_policy(pol)
+        except TrafficError as err:
+            out.append(f"{key('traffic')}: {err}")
 
 
 def _check_camera(cam: Any, path: str, out: list[str]) -> None:

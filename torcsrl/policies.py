@@ -271,7 +271,7 @@ class CheckpointPolicy(Policy):
         if cfg.env.get("normalize", True):
             from torcsrl.envs.sensors import obs_scale
 
-            for k in ("rangefinder", "state", "telemetry"):
+            for k in ("rangefinder", "state", "telemetry", "opponents"):
                 if k in self.obs_shapes:
                     self.obs_divisors[k] = torch.as_tensor(obs_scale(k, int(self.obs_shapes[k][-1])))
         rec = meta.get("pipeline")  # written since the pipeline record exists: what the actor was trained on

@@ -149,7 +149,7 @@ def observation_transforms(cfg: DictConfig, base: EnvBase, seed: int | None = No
     if cfg.env.name == "race" and cfg.env.get("normalize", True):
         from torcsrl.envs.sensors import normalize_transform
 
-        keys = [k for k in ("rangefinder", "state", "telemetry") if k in base.observation_spec.keys()]
+        keys = [k for k in ("rangefinder", "state", "telemetry", "opponents") if k in base.observation_spec.keys()]
         if keys:
             n_beams = base.observation_spec["rangefinder"].shape[-1] if "rangefinder" in keys else 19
             out.append(normalize_transform(keys, n_beams))
@@ -169,7 +169,7 @@ def pipeline_record(cfg: DictConfig, env: EnvBase) -> dict[str, Any]:
         from torcsrl.envs.sensors import obs_scale
 
         nb = len(env.batch_size)
-        for k in ("rangefinder", "state", "telemetry"):
+        for k in ("rangefinder", "state", "telemetry", "opponents"):
             if k in env.observation_spec.keys() and k in obs_keys:  # what the policy reads (a teacher may read more)
                 scales[k] = [float(x) for x in obs_scale(k, int(env.observation_spec[k].shape[nb:][-1]))]
     deg = cfg.get("degradation")

@@ -165,6 +165,7 @@ def test_reward_presets_match_their_formulas(preset):
         "summers_final": vx * (math.cos(th) - abs(math.sin(th))),
         "lau": vx * (math.cos(th) - abs(math.sin(th)) - abs(tp)),
         "progress": ds,
+        "race": vx * (math.cos(th) - abs(math.sin(th))),  # the race terms are 0 without traffic
     }[preset]
     assert value == pytest.approx(expected)
     done = Reward.terms(np.array([vx]), np.array([th]), np.array([tp]), np.array([ds]), np.array([True]))

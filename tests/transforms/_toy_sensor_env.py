@@ -22,7 +22,7 @@ OMEGA = 0.3  # rad/step: slow enough that a delay of 8 steps is still < half a p
 
 class ToySensorEnv(EnvBase):
     """batch_size [] or [N]; keys "rangefinder" [19] m (-1 off track), "state" [12],
-    "pixels" uint8 [3, H, W], "depth" [1, H, W] m. ``fixed_phase`` makes every env (and every
+    "pixels" uint8 [3, H, W], "depth" [1, H, W] m, "opponents" [36] m (200 = free sector). ``fixed_phase`` makes every env (and every
     seed) produce the same clean readings, to isolate the transforms' own randomness."""
 
     def __init__(
@@ -45,6 +45,7 @@ class ToySensorEnv(EnvBase):
             state=Unbounded(shape=(*bs, N_STATE), dtype=torch.float32),
             pixels=Bounded(0, 255, shape=(*bs, 3, H, W), dtype=torch.uint8),
             depth=Unbounded(shape=(*bs, 1, H, W), dtype=torch.float32),
+            opponents=Bounded(0.0, 200.0, shape=(*bs, 36), dtype=torch.float32),
             shape=bs,
         )
         self.action_spec = Bounded(-1.0, 1.0, shape=(*bs, 2))
@@ -85,7 +86,10 @@ class ToySensorEnv(EnvBase):
         gain = (0.75 + 0.25 * torch.sin(a)).reshape(*bs, 1, 1, 1)
         pixels = (self._pix * gain).round().clamp(0, 255).to(torch.uint8)
         depth = self._depth * (1.0 + 0.1 * torch.sin(a)).reshape(*bs, 1, 1, 1)
-        return {"rangefinder": rng, "state": state, "pixels": pixels, "depth": depth}
+        sect = torch.arange(36, dtype=torch.float32)
+        opp = 10.0 + 90.0 * (0.5 + 0.5 * torch.sin(a + 0.4 * sect))
+        opp = torch.where(torch.sin(a + 0.9 * sect) > 0.3, opp, torch.full_like(opp, 200.0))  # cars in some sectors
+        return {"rangefinder": rng, "state": state, "pixels": pixels, "depth": depth, "opponents": opp}
 
     def _done(self) -> dict:
         bs = self.batch_size

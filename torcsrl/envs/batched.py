@@ -9,6 +9,10 @@ Keys (per car): the sensor observations (``rangefinder`` [m], ``state``, ``pixel
 ``terminated`` / ``truncated`` ``[1]`` bool, and ``info``: distFromStart, distRaced [m], lap,
 curLapTime, lastLapTime, bestLapTime [s], finished, track_slot and the reward terms
 ``reward_<term>``. See :class:`torcsrl.envs.race.RaceEnv` for the meaning and units of each.
+
+With ``traffic`` (a race, :mod:`torcsrl.envs.traffic`) the batch is the N learners; their opponents drive inside
+the env, and ``info`` also holds racePos, overtakes, collisions (ints), damage, impulse [kN s] and gapAhead [m].
+A learner's reset restarts its whole race group.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from torchrl.envs import EnvBase
 
 from torcsrl.envs.race import INFO_KEYS, RaceCore
 from torcsrl.envs.rewards import REWARD_TERMS
+from torcsrl.envs.traffic import OPPONENT_RANGE_M
 
 # order matters: it is the column order of the info array built in _observation
 _FLOAT_INFO = ("distFromStart", "distRaced", "curLapTime", "lastLapTime", "bestLapTime", "surfaceMu") + tuple(
@@ -65,6 +70,8 @@ class TorchRaceEnv(EnvBase):
                 obs[key] = Bounded(-1.0, c.rangefinder.range_m, full, dtype=torch.float32, device=self.device)
             elif key in ("state", "telemetry"):
                 obs[key] = Unbounded(full, dtype=torch.float32, device=self.device)
+            elif key == "opponents":
+                obs[key] = Bounded(0.0, OPPONENT_RANGE_M, full, dtype=torch.float32, device=self.device)
             elif key == "pixels":
                 obs[key] = Bounded(0, 255, full, dtype=torch.uint8, device=self.device)
             elif key == "depth":
@@ -73,6 +80,11 @@ class TorchRaceEnv(EnvBase):
         info["lap"] = Unbounded((*b, 1), dtype=torch.int64, device=self.device)
         info["track_slot"] = Unbounded((*b, 1), dtype=torch.int64, device=self.device)
         info["finished"] = Categorical(2, (*b, 1), dtype=torch.bool, device=self.device)
+        if c.traffic is not None:
+            for k in ("racePos", "overtakes", "collisions"):
+                info[k] = Unbounded((*b, 1), dtype=torch.int64, device=self.device)
+            for k in ("damage", "impulse", "gapAhead"):
+                info[k] = Unbounded((*b, 1), dtype=torch.float32, device=self.device)
         obs["info"] = Composite(info, shape=b, device=self.device)
         self.observation_spec = Composite(obs, shape=b, device=self.device)
         self.action_spec = Bounded(-1.0, 1.0, (*b, c.action_dim), dtype=torch.float32, device=self.device)
@@ -89,6 +101,9 @@ class TorchRaceEnv(EnvBase):
         return TensorDict._new_unsafe(source, batch_size=self.batch_size, device=self.device)
 
     def _t(self, x: np.ndarray) -> torch.Tensor:
+        nl = self.core.n_learners
+        if len(x) != nl:  # a race: the learners are the first rows
+            x = x[:nl]
         t = torch.from_numpy(np.ascontiguousarray(x))
         return t if self._batched else t[0]
 
@@ -105,6 +120,14 @@ class TorchRaceEnv(EnvBase):
         info["lap"] = ints[..., 0:1]
         info["track_slot"] = ints[..., 1:2]
         info["finished"] = self._t(c.finished[:, None])
+        if c.traffic is not None:
+            tr = c.traffic
+            ints = self._t(np.stack([tr.race_pos, tr.overtakes, tr.collisions], axis=1))
+            for j, k in enumerate(("racePos", "overtakes", "collisions")):
+                info[k] = ints[..., j:j + 1]
+            fl = self._t(np.stack([tr.damage, tr.impulse, tr.gap_ahead], axis=1).astype(np.float32))
+            for j, k in enumerate(("damage", "impulse", "gapAhead")):
+                info[k] = fl[..., j:j + 1]
         out["info"] = self._wrap(info)
         return out
 
@@ -119,7 +142,7 @@ class TorchRaceEnv(EnvBase):
             self.core.reset()
         else:
             self.core.reset(mask)
-        n = self.core.n
+        n = self.core.n_learners
         td = self._observation()
         zeros = np.zeros((n, 1), dtype=bool)
         td.update(done=self._t(zeros), terminated=self._t(zeros.copy()), truncated=self._t(zeros.copy()))
@@ -130,7 +153,7 @@ class TorchRaceEnv(EnvBase):
         if action is None:
             raise KeyError(f"step: the input tensordict has no 'action' entry (keys: {sorted(map(str, tensordict.keys()))}); "
                            f"allowed: a float tensor [{', '.join(map(str, (*self.batch_size, self.core.action_dim)))}] in [-1, 1] under 'action'")
-        action = action.detach().cpu().numpy().reshape(self.core.n, -1)
+        action = action.detach().cpu().numpy().reshape(self.core.n_learners, -1)
         c = self.core
         c.step(action)
         td = self._observation()

@@ -30,6 +30,8 @@ from torcsrl.envs.tracks.procedural import ProceduralSpec
 from torcsrl.envs.rewards import REWARD_TERMS, Reward
 from torcsrl.envs.sensors import (MS_TO_KMH, RANGEFINDER_ANGLES_DEG, RANGE_M, STATE_BOUNDS, STATE_SLOTS, TELEMETRY_SLOTS,
                                   Rangefinder, check_sensors)
+from torcsrl.envs.traffic import (OPPONENT_RANGE_M, OPPONENT_RGBA, OPPONENT_SECTORS, RACE_INFO_KEYS, Traffic, TrafficSpec,
+                                  opponent_sectors)
 from torcsrl.envs.vehicle import CarFleet, VehicleParams, make_ground
 
 ACTION_MODES = ("combined", "separate")
@@ -107,6 +109,9 @@ class RaceCore:
         control_hz, substeps: control rate [Hz] and physics substeps per control step.
         rangefinder_angles_deg: beam angles [deg]; ``rangefinder_range_m``: beam range [m].
         camera: keyword arguments for :class:`torcsrl.envs.camera.Camera` (pixels/depth).
+        traffic: ``None`` (every car alone), or a race (:mod:`torcsrl.envs.traffic`, conf/traffic/*.yaml): each of the
+            ``num_cars`` learners races ``traffic.opponents`` opponents on its own copy of the track; the core then
+            holds ``num_cars x (1 + opponents)`` cars, learners first (``n_learners`` of ``n``).
         procedural: ``{seeds: [lo, hi], pool: N, share: p, generator: proc|gen}``: add a pool of N
             generated tracks (seeds drawn from ``[lo, hi)`` by a stream seeded with ``seed``); each
             episode drives a pool track with probability ``share``, else a named track
@@ -142,6 +147,7 @@ class RaceCore:
         rangefinder_range_m: float = RANGE_M,
         camera: Mapping[str, Any] | None = None,
         procedural: Mapping[str, Any] | None = None,
+        traffic: Mapping[str, Any] | None = None,
         seed: int | None = None,
     ) -> None:
         self.sensors = check_sensors(sensors)
@@ -155,7 +161,11 @@ class RaceCore:
             raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}")
         if lap_limit is not None and (int(lap_limit) != lap_limit or lap_limit < 1):
             raise ValueError(f"lap_limit must be a positive integer or None, got {lap_limit!r}")
-        self.n = int(num_cars)
+        #: the cars the agent drives (the env's batch); ``n`` counts every car of the world (opponents too)
+        self.n_learners = int(num_cars)
+        self.traffic_spec = TrafficSpec.from_config(traffic)
+        k_opp = self.traffic_spec.opponents if self.traffic_spec is not None else 0
+        self.n = self.n_learners * (1 + k_opp)
         self.track_names = _tracks.resolve(_as_list(track))
         #: Named tracks first, then the procedural pool (slots n_named ...).
         self.n_named = len(self.track_names)
@@ -185,7 +195,23 @@ class RaceCore:
         params = VehicleParams.load(vehicle, overrides=dict(vehicle_overrides) if vehicle_overrides else None)
         self.fleet = CarFleet(self.client, self.n, params, control_hz=control_hz, substeps=substeps)
         self.dt = self.fleet.dt_control
-        self.rangefinder = Rangefinder(rangefinder_angles_deg, rangefinder_range_m) if "rangefinder" in self.sensors else None
+        self.traffic: Traffic | None = None
+        self._group_offset = np.zeros((self.n, 2))
+        if self.traffic_spec is not None:
+            self.traffic = Traffic(self.traffic_spec, self.n_learners, params)
+            self._group_offset[:, 1] = self.traffic.group * TRACK_SPACING_M  # group g: its own track copy, g x 10 km north
+            if self.traffic_spec.collide:
+                self.fleet.set_collide(True)
+                self.fleet.track_contacts(True)
+            for b in self.fleet.bodies[self.n_learners:]:
+                p.changeVisualShape(b, -1, rgbaColor=list(OPPONENT_RGBA), physicsClientId=self.client)
+        #: observation keys computed for every car (the learners' sensors and what frozen-policy opponents read)
+        self._all_keys = tuple(k for k in self.sensors if k not in ("pixels", "depth"))
+        if self.traffic is not None:
+            self._all_keys += tuple(k for k in self.traffic.obs_keys if k not in self._all_keys)
+        self._obs_all: dict[str, np.ndarray] = {}
+        self.start_back = np.zeros(self.n)  # how far behind its race's start point each car started [m] (laps count from there)
+        self.rangefinder = Rangefinder(rangefinder_angles_deg, rangefinder_range_m) if "rangefinder" in self._all_keys else None
         self._geometry = [_tracks.load(name) for name in self.track_names]  # one slot per distinct entry
         #: World origin [m] of each track slot: tracks lie 10 km apart, so that cameras never see
         #: another slot's track, and each car drives at its own track's origin.
@@ -241,7 +267,13 @@ class RaceCore:
     def _make_camera(self) -> None:
         from torcsrl.envs import camera as _camera  # optional: pixels and depth
 
-        self.camera = _camera.CarCameras(self.client, self, **self._camera_cfg)
+        self.camera = _camera.CarCameras(self.client, self if self.traffic is None else _LearnerView(self), **self._camera_cfg)
+
+    def car_origins(self) -> np.ndarray:
+        """World origin ``[n, 2]`` [m] of each car's track copy (its track slot's origin, plus its race group's offset)."""
+        if self.traffic is None:
+            return self.track_origins[self.slot]
+        return self.track_origins[self.slot] + self._group_offset
 
     @property
     def observation_shapes(self) -> dict[str, tuple[int, ...]]:
@@ -250,6 +282,8 @@ class RaceCore:
             out["rangefinder"] = (self.rangefinder.n_beams,)
         if "state" in self.sensors:
             out["state"] = (len(STATE_SLOTS),)
+        if "opponents" in self.sensors:
+            out["opponents"] = (OPPONENT_SECTORS,)
         if "telemetry" in self.sensors:
             out["telemetry"] = (len(TELEMETRY_SLOTS),)
         if self.camera is not None:
@@ -262,9 +296,11 @@ class RaceCore:
     # ------------------------------------------------------------------ reset
     def reset(self, idx: np.ndarray | None = None) -> None:
         """Start a new episode for cars ``idx`` (all when None); the others are untouched."""
-        idx = np.arange(self.n) if idx is None else np.flatnonzero(idx) if np.asarray(idx).dtype == bool else np.asarray(idx)
+        idx = np.arange(self.n_learners) if idx is None else np.flatnonzero(idx) if np.asarray(idx).dtype == bool else np.asarray(idx)
         if len(idx) == 0:
             return
+        if self.traffic is not None:
+            return self._reset_race(idx)
         k = len(idx)
         rng = self.rng
         if self.procedural is not None:  # named tracks or the pool, then a track within
@@ -288,7 +324,7 @@ class RaceCore:
             self.s0[i] = s0
             self.s[i] = s0
             self.chord[i] = int(t._locate(s0)[0])
-        self.fleet.reset(idx, xy + self.track_origins[self.slot[idx]], yaw, 0.0)
+        self.fleet.reset(idx, xy + self.car_origins()[idx], yaw, 0.0)
         for name in ("dist_raced", "best_dist", "best_dist_time", "time", "lap_start_time", "last_lap_time",
                      "best_lap_time", "offtrack_time"):
             getattr(self, name)[idx] = 0.0
@@ -300,6 +336,56 @@ class RaceCore:
         self.reason[idx] = 0
         self.terms[:, idx] = 0.0
         self._locate(idx_reset=idx)
+        self._observe()
+
+    def _draw_tracks(self, k: int) -> tuple[np.ndarray, list]:
+        rng = self.rng
+        if self.procedural is not None:
+            pick = rng.random(k) < self.procedural.share
+            slots = np.where(pick, self.n_named + rng.integers(self.procedural.pool, size=k), rng.integers(self.n_named, size=k))
+        else:
+            slots = rng.integers(len(self._geometry), size=k) if len(self._geometry) > 1 else np.zeros(k, dtype=np.int64)
+        surf = [self.surfaces[j] for j in (rng.integers(len(self.surfaces), size=k) if len(self.surfaces) > 1 else np.zeros(k, dtype=int))]
+        return slots, surf
+
+    def _reset_race(self, groups: np.ndarray) -> None:
+        """New races for learners ``groups``: each learner's group (it and its opponents) drawn onto a track, laid
+        out on the grid (or rolling), with the grid order and the opponents' paces drawn from the env's generator."""
+        tr = self.traffic
+        slots, surf = self._draw_tracks(len(groups))
+        cars, xy, yaw, speed = [], [], [], []
+        for j, g in enumerate(groups.tolist()):
+            t = self._variant(int(slots[j]), surf[j])
+            anchor = float(self.rng.uniform(0.0, t.length)) if self.start == "random" else 0.0
+            s_start, dd, v0, back = tr.layout(g, t, self.rng, anchor)
+            for c, i in enumerate(tr.members[g].tolist()):
+                self.slot[i] = slots[j]
+                self.car_tracks[i] = t
+                self.surface_pick[i] = surf[j]
+                s0 = float(s_start[c])
+                cars.append(i)
+                xy.append(t.to_world(s0, float(dd[c])))
+                yaw.append(float(t.heading(s0)))
+                speed.append(float(v0[c]))
+                self.s0[i] = s0
+                self.s[i] = s0
+                self.chord[i] = int(t._locate(s0)[0])
+                self.start_back[i] = back[c]
+            tr.reset_books(g, back)
+        idx = np.asarray(cars, dtype=np.int64)
+        self.fleet.reset(idx, np.asarray(xy) + self.car_origins()[idx], np.asarray(yaw), np.asarray(speed))
+        for name in ("dist_raced", "best_dist", "best_dist_time", "time", "lap_start_time", "last_lap_time",
+                     "best_lap_time", "offtrack_time"):
+            getattr(self, name)[idx] = 0.0
+        self.lap[idx] = 0
+        self.crossings[idx] = 0
+        self.steps[idx] = 0
+        self.lap_timed[idx] = False  # the first lap is timed from the first crossing of the line
+        self.finished[idx] = False
+        self.reason[idx] = 0
+        self.terms[:, idx] = 0.0
+        self._locate(idx_reset=idx)
+        tr._d_prev = self.d.copy()
         self._observe()
 
     # ------------------------------------------------------------------ exact resume
@@ -314,7 +400,11 @@ class RaceCore:
             p.saveBullet(f, physicsClientId=self.client)
             world = np.fromfile(f, dtype=np.uint8)
         books = {k: np.array(getattr(self, k), copy=True) for k in _BOOK_FIELDS}
-        return {"world": world, "fleet": self.fleet.get_state(), "books": books,
+        extra = {}
+        if self.traffic is not None:
+            extra = {"traffic": self.traffic.get_state(), "start_back": self.start_back.copy(),
+                     "obs_all": {k: v.copy() for k, v in self._obs_all.items()}}
+        return {**extra, "world": world, "fleet": self.fleet.get_state(), "books": books,
                 "surface_pick": list(self.surface_pick), "obs": {k: v.copy() for k, v in self.obs.items()},
                 "camera_slots": list(getattr(self.camera, "_worlds", {}) or {}), "rng": self.rng.bit_generator.state,
                 "camera": None if self.camera is None else self.camera.get_state()}
@@ -338,6 +428,11 @@ class RaceCore:
         self.obs = {k: np.array(v, copy=True) for k, v in state["obs"].items()}
         self.rng.bit_generator.state = state["rng"]
         self.fleet.set_state(state["fleet"])
+        if self.traffic is not None:
+            self.start_back = np.array(state["start_back"], copy=True)
+            self._obs_all = {k: np.array(v, copy=True) for k, v in state["obs_all"].items()}
+            self.obs = self._learner_obs(self._obs_all, self.obs)
+            self.traffic.set_state(state["traffic"], self)
         if self.camera is not None and "camera" in state:  # held frames (camera every > 1); absent in older checkpoints
             self.camera.set_state(state["camera"])
 
@@ -345,16 +440,17 @@ class RaceCore:
     def sanitize(self, action) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(steer, throttle, brake) ``[N]`` from an action ``[N, A]``; see :class:`RaceEnv`."""
         a = np.asarray(action, dtype=np.float64)
-        if self.n == 1 and self.action_dim == 2 and a.size == 2:  # the common case, in floats
+        nl = self.n_learners
+        if nl == 1 and self.action_dim == 2 and a.size == 2:  # the common case, in floats
             st, tb = a.ravel().tolist()
             if math.isfinite(st) and math.isfinite(tb):
                 st, tb = min(max(st, -1.0), 1.0), min(max(tb, -1.0), 1.0)
                 return np.array([st]), np.array([max(tb, 0.0)]), np.array([max(-tb, 0.0)])
-        if a.shape != (self.n, self.action_dim):
-            if a.size == self.n * self.action_dim:
-                a = a.reshape(self.n, self.action_dim)
+        if a.shape != (nl, self.action_dim):
+            if a.size == nl * self.action_dim:
+                a = a.reshape(nl, self.action_dim)
             else:
-                want = (self.action_dim,) if self.n == 1 else (self.n, self.action_dim)
+                want = (self.action_dim,) if nl == 1 else (nl, self.action_dim)
                 raise ValueError(f"action has shape {a.shape}; expected {want} ({self.action_mode}: "
                                  f"{'steer, throttle_brake' if self.action_dim == 2 else 'steer, throttle, brake'})")
         if not np.isfinite(a).all():
@@ -368,10 +464,12 @@ class RaceCore:
     def step(self, action) -> None:
         """One control step for every car (call :meth:`reset` for the cars that are done)."""
         steer, throttle, brake = self.sanitize(action)
+        if self.traffic is not None:
+            steer, throttle, brake = self.traffic.actions(self, (steer, throttle, brake))
         self.fleet.step(steer, throttle, brake)
         s_old = self.s.copy()
         self._locate()
-        if self.n == 1:
+        if self.n == 1 and self.traffic is None:
             self._book_one(float(s_old[0]))
             self._observe()
             return
@@ -396,7 +494,12 @@ class RaceCore:
         terminated = reason > 0
         self.finished = (self.lap >= self.lap_limit) & ~terminated if self.lap_limit is not None else np.zeros(self.n, bool)
         vx = self.fleet.vel_body[:, 0]
-        self.terms = Reward.terms(vx, self.angle, self.track_pos, progress, terminated)
+        race = None
+        if self.traffic is not None:
+            imp = self.fleet.contact_impulse
+            self.traffic.update(self, imp if imp is not None else np.zeros((self.n, self.n)))
+            race = self.traffic.terms
+        self.terms = Reward.terms(vx, self.angle, self.track_pos, progress, terminated, race)
         self.rewards = self.reward(self.terms)
         self.terminated = terminated
         self.truncated = ~terminated & ((self.steps >= self.max_steps) | self.finished)
@@ -439,7 +542,7 @@ class RaceCore:
         fin = self.lap_limit is not None and int(self.lap[0]) >= self.lap_limit and not term
         self.finished = np.array([fin])
         vx = float(self.fleet.vel_body[0, 0])
-        terms = (vx * math.cos(ang), -vx * abs(math.sin(ang)), -vx * abs(tp), progress, float(term))
+        terms = (vx * math.cos(ang), -vx * abs(math.sin(ang)), -vx * abs(tp), progress, float(term), 0.0, 0.0, 0.0, 0.0)
         self.terms = np.array(terms).reshape(len(REWARD_TERMS), 1)
         w = self.reward._w
         self.rewards = np.array([self.reward.scale * sum(w[k] * terms[k] for k in range(len(terms)))])
@@ -455,7 +558,7 @@ class RaceCore:
         previous arc length.
         """
         fleet = self.fleet
-        origin = self.track_origins[self.slot]  # [N, 2]
+        origin = self.car_origins()  # [N, 2]
         pos = fleet.pos[:, :2] - origin  # in each car's track frame
         wheels = fleet.wheel_xy - origin[:, None, :]  # [N, 4, 2]
         if self.n <= self.scalar_locate_max_cars:
@@ -520,16 +623,20 @@ class RaceCore:
             self.lap_start_time[i] = self.time[i]
             self.lap_timed[i] = True
             self.crossings = np.maximum(self.crossings, cross)
-        self.lap = np.maximum(self.lap, np.floor(self.dist_raced / lengths).astype(np.int64))
+        self.lap = np.maximum(self.lap, np.floor((self.dist_raced - self.start_back) / lengths).astype(np.int64))
 
     def _observe(self) -> None:
         obs = {}
         fleet = self.fleet
-        if "rangefinder" in self.sensors:
+        keys = self._all_keys
+        if "rangefinder" in keys:
             on = np.abs(self.track_pos) <= 1.0
-            xy = fleet.pos[:, :2] - self.track_origins[self.slot]
+            xy = fleet.pos[:, :2] - self.car_origins()
             obs["rangefinder"] = self.rangefinder.read(self.slot, xy, fleet.yaw, on)
-        if "state" in self.sensors or "telemetry" in self.sensors:
+        if "opponents" in keys:
+            groups = self.traffic.group if self.traffic is not None else np.arange(self.n)
+            obs["opponents"] = opponent_sectors(fleet.pos[:, :2], fleet.yaw, groups, range_m=OPPONENT_RANGE_M)
+        if "state" in keys or "telemetry" in keys:
             v = fleet.vel_body * MS_TO_KMH
             st = np.empty((self.n, len(STATE_SLOTS)), dtype=np.float32)
             st[:, 0] = self.angle
@@ -538,13 +645,24 @@ class RaceCore:
             st[:, 5:9] = fleet.wheel_omega
             st[:, 9] = fleet.rpm
             st[:, 10] = fleet.gear
-            if "state" in self.sensors:
+            if "state" in keys:
                 obs["state"] = st
-            if "telemetry" in self.sensors:
+            if "telemetry" in keys:
                 obs["telemetry"] = np.ascontiguousarray(st[:, 2:])
+        if self.traffic is not None:
+            self._obs_all = obs
+            obs = self._learner_obs(obs)
         if self.camera is not None:
             obs.update(self.camera.render())
         self.obs = obs
+
+    def _learner_obs(self, obs_all: Mapping[str, np.ndarray], held: Mapping[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+        """The learners' rows of the sensors they asked for (race mode), and ``held``'s camera frames."""
+        nl = self.n_learners
+        out = {k: np.ascontiguousarray(v[:nl]) for k, v in obs_all.items() if k in self.sensors}
+        if held is not None:
+            out.update({k: v for k, v in held.items() if k in ("pixels", "depth")})
+        return out
 
     def info(self) -> dict[str, np.ndarray]:
         """Per-car bookkeeping ``[N]`` (TORCS names, SI units) and the reward terms."""
@@ -554,6 +672,8 @@ class RaceCore:
             "curLapTime": cur, "lastLapTime": self.last_lap_time.copy(), "bestLapTime": self.best_lap_time.copy(),
             "surfaceMu": self.fleet.wheel_mu.mean(axis=1),
         }
+        if self.traffic is not None:
+            out.update(self.traffic.info())
         for k, name in enumerate(REWARD_TERMS):
             out[f"reward_{name}"] = self.terms[k].copy()
         return out
@@ -663,6 +783,8 @@ class RaceEnv(gym.Env, EzPickle):
             elif key in ("state", "telemetry"):
                 lo, hi = np.array([STATE_BOUNDS[s] for s in (STATE_SLOTS if key == "state" else TELEMETRY_SLOTS)], dtype=np.float32).T
                 obs_spaces[key] = spaces.Box(lo, hi, dtype=np.float32)
+            elif key == "opponents":
+                obs_spaces[key] = spaces.Box(0.0, OPPONENT_RANGE_M, shape, np.float32)
             elif key == "pixels":
                 obs_spaces[key] = spaces.Box(0, 255, shape, np.uint8)
             elif key == "depth":
@@ -679,7 +801,7 @@ class RaceEnv(gym.Env, EzPickle):
 
     def _info(self) -> dict[str, Any]:
         c = self.core
-        info = {k: (int(v[0]) if k == "lap" else float(v[0])) for k, v in c.info().items()}
+        info = {k: (int(v[0]) if k in ("lap", "racePos", "overtakes", "collisions") else float(v[0])) for k, v in c.info().items()}
         info["termination"] = TERMINATION_REASONS[int(c.reason[0])]
         info["finished"] = bool(c.finished[0])
         info["track"] = c.car_tracks[0].name
@@ -707,7 +829,7 @@ class RaceEnv(gym.Env, EzPickle):
         if self.render_mode != "rgb_array":
             return None
         c = self.core
-        return render_top_down(c.car_tracks[0], c.fleet.pos[0, :2] - c.track_origins[c.slot[0]], float(c.fleet.yaw[0]))
+        return render_top_down(c.car_tracks[0], c.fleet.pos[0, :2] - c.car_origins()[0], float(c.fleet.yaw[0]))
 
     def close(self) -> None:
         if getattr(self, "core", None) is not None:
@@ -750,3 +872,59 @@ def render_top_down(track, xy: np.ndarray, yaw: float, size: int = 400) -> np.nd
     cv2.circle(img, tuple(c), 5, (230, 20, 20), -1)
     cv2.line(img, tuple(c), tuple(tip), (255, 255, 0), 2)
     return img
+
+
+class _LearnerView:
+    """The learners of a race core as the camera sees them (:class:`torcsrl.envs.camera.CarCameras` reads ``fleet``,
+    ``slot``, ``car_tracks``, ``_geometry``, ``steps``, ``sensors``, ``track_origins``): frames are rendered for the
+    learners only, and race group g's copy of a track is a visual world of its own (virtual slot
+    ``slot + n_slots x g``, at the group's origin), so each learner sees its own opponents."""
+
+    def __init__(self, core: RaceCore) -> None:
+        self._core = core
+        self.sensors = core.sensors
+        self.fleet = _LearnerFleet(core)
+        self._geometry = _Cycle(core._geometry)
+
+    @property
+    def slot(self) -> np.ndarray:
+        c = self._core
+        nl = c.n_learners
+        return c.slot[:nl] + len(c._geometry) * np.arange(nl)
+
+    @property
+    def car_tracks(self) -> list:
+        return self._core.car_tracks[: self._core.n_learners]
+
+    @property
+    def steps(self) -> np.ndarray:
+        return self._core.steps[: self._core.n_learners]
+
+    @property
+    def track_origins(self) -> np.ndarray:
+        c = self._core
+        k = len(c._geometry)
+        g = np.arange(k * c.n_learners) // k
+        return c.track_origins[np.arange(k * c.n_learners) % k] + np.stack([np.zeros(len(g)), g * TRACK_SPACING_M], 1)
+
+
+class _Cycle:
+    def __init__(self, items: list) -> None:
+        self._items = items
+
+    def __getitem__(self, i: int):
+        return self._items[int(i) % len(self._items)]
+
+
+class _LearnerFleet:
+    def __init__(self, core: RaceCore) -> None:
+        self._core = core
+        self.params = core.fleet.params
+
+    @property
+    def pos(self) -> np.ndarray:
+        return self._core.fleet.pos[: self._core.n_learners]
+
+    @property
+    def rotation(self) -> np.ndarray:
+        return self._core.fleet.rotation[: self._core.n_learners]

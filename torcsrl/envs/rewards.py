@@ -12,7 +12,17 @@ speed_sin      −v_x · |sin θ|                               m/s
 track_pos      −v_x · |trackPos|                            m/s
 progress       Δs along the centreline this step            m
 termination    1 on the step that terminates, else 0        –
+collision      contact impulse with other cars this step    kN s
+positions      race positions gained this step (− lost)     –
+gap            safe-distance shortfall to the car ahead:    –
+               max(0, 1 − gap / max(10 m, 1 s · v_x))
+blocking       lateral move towards the line of a car       m
+               within 20 m behind (|d − d_f| shrinking)
 =============  ==========================================  =====================
+
+The last four are race terms (:mod:`torcsrl.envs.traffic`; 0 without traffic). Their weights carry the sign:
+``race`` = ``summers_final`` + collision −1 per kN s, positions +1, gap −0.5 (Summers 2022's safe distance),
+blocking −0.5 per m.
 
 θ is the angle between the car and the track axis; v_x the car's forward speed.
 
@@ -20,7 +30,8 @@ Presets (weights):
 - ``summers_initial`` (Summers 2022, first reward): v_x cos θ;
 - ``summers_final`` (Summers 2022, final): v_x (cos θ − |sin θ|), termination −1;
 - ``lau`` (Lau 2016 / Andersson et al.): v_x (cos θ − |sin θ| − |trackPos|), termination −500;
-- ``progress``: Δs per step, termination −1.
+- ``progress``: Δs per step, termination −1;
+- ``race``: ``summers_final`` plus the race terms (above).
 """
 
 from __future__ import annotations
@@ -30,13 +41,18 @@ from collections.abc import Mapping
 
 import numpy as np
 
-REWARD_TERMS: tuple[str, ...] = ("speed_cos", "speed_sin", "track_pos", "progress", "termination")
+REWARD_TERMS: tuple[str, ...] = ("speed_cos", "speed_sin", "track_pos", "progress", "termination",
+                                  "collision", "positions", "gap", "blocking")
+#: The race terms (computed by :class:`torcsrl.envs.traffic.Traffic`), in REWARD_TERMS order.
+RACE_TERMS: tuple[str, ...] = REWARD_TERMS[5:]
 
 PRESETS: dict[str, dict[str, float]] = {
     "summers_initial": {"speed_cos": 1.0},
     "summers_final": {"speed_cos": 1.0, "speed_sin": 1.0, "termination": -1.0},
     "lau": {"speed_cos": 1.0, "speed_sin": 1.0, "track_pos": 1.0, "termination": -500.0},
     "progress": {"progress": 1.0, "termination": -1.0},
+    "race": {"speed_cos": 1.0, "speed_sin": 1.0, "termination": -1.0, "collision": -1.0, "positions": 1.0, "gap": -0.5,
+             "blocking": -0.5},
 }
 
 
@@ -79,16 +95,17 @@ class Reward:
             raise ValueError(f"reward_scale must be a finite number, got {scale!r}; allowed: any finite factor (e.g. 0.05)")
 
     @staticmethod
-    def terms(vx, angle, track_pos, progress, terminated) -> np.ndarray:
-        """All terms ``[T, N]`` in :data:`REWARD_TERMS` order, from arrays ``[N]``."""
+    def terms(vx, angle, track_pos, progress, terminated, race: np.ndarray | None = None) -> np.ndarray:
+        """All terms ``[T, N]`` in :data:`REWARD_TERMS` order, from arrays ``[N]`` (``race [4, N]``: the race
+        terms, zeros when None)."""
         vx = np.asarray(vx, dtype=np.float64)
-        return np.stack([
+        return np.concatenate([np.stack([
             vx * np.cos(angle),
             -vx * np.abs(np.sin(angle)),
             -vx * np.abs(track_pos),
             np.asarray(progress, dtype=np.float64),
             np.asarray(terminated, dtype=np.float64),
-        ])
+        ]), np.zeros((len(RACE_TERMS), vx.shape[0])) if race is None else race])
 
     def __call__(self, terms: np.ndarray) -> np.ndarray:
         """Scalar rewards ``[N]`` from terms ``[T, N]``."""

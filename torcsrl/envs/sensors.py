@@ -11,6 +11,11 @@ their own, so they never interact with the cars' physics.
 
 **state** ``[S]`` float32, slots :data:`STATE_SLOTS` (TORCS names, units in the suffix).
 
+**opponents** ``[36]`` float32 [m]: TORCS SCR's opponent sensor — per 10° sector around the car (sector 0 straight
+back, clockwise: 9 left, 17/18 ahead, 27 right), the centre distance to the nearest other car of its race, capped at
+200 m; a free sector reads 200 m (:func:`torcsrl.envs.traffic.opponent_sectors`). Normalised: / 200 m. Only cars of a
+race (``traffic``) are seen; without traffic every sector reads 200.
+
 **telemetry** ``[T]`` float32, slots :data:`TELEMETRY_SLOTS`: the state slots a real car measures on
 board (speeds, wheel spin, rpm, gear) — without ``angle_rad`` and ``trackPos``, which need a map of the
 track. With ``pixels`` it makes the camera-only observation set (``sensors=camera``).
@@ -66,7 +71,7 @@ STATE_BOUNDS: dict[str, tuple[float, float]] = {
     "wheelSpinVel_rl": (-1e3, 1e3), "wheelSpinVel_rr": (-1e3, 1e3), "rpm": (0.0, 2e4), "gear": (0.0, 10.0),
 }
 MS_TO_KMH = 3.6
-SENSOR_NAMES: tuple[str, ...] = ("rangefinder", "state", "telemetry", "pixels", "depth")
+SENSOR_NAMES: tuple[str, ...] = ("rangefinder", "state", "telemetry", "pixels", "depth", "opponents")
 
 
 def check_sensors(sensors) -> tuple[str, ...]:
@@ -86,9 +91,11 @@ def obs_scale(key: str, n_beams: int = len(RANGEFINDER_ANGLES_DEG)) -> np.ndarra
     """Divisors that normalise observation ``key`` (rangefinder, state or telemetry)."""
     if key == "rangefinder":
         return np.full(n_beams, RANGE_M, dtype=np.float32)
+    if key == "opponents":
+        return np.full(36, 200.0, dtype=np.float32)
     if key in ("state", "telemetry"):
         return np.array([STATE_SCALE[s] for s in (STATE_SLOTS if key == "state" else TELEMETRY_SLOTS)], dtype=np.float32)
-    raise ValueError(f"no scale for {key!r}; scales exist for rangefinder, state and telemetry")
+    raise ValueError(f"no scale for {key!r}; scales exist for rangefinder, state, telemetry and opponents")
 
 
 def normalize_transform(keys=("rangefinder", "state"), n_beams: int = len(RANGEFINDER_ANGLES_DEG)):

@@ -469,6 +469,9 @@ class CarFleet:
         self._build_constants()
         self.bodies: list[int] = [self._create_body() for _ in range(self.n)]
         self.set_collide(self.collide)
+        #: car-car contact impulses of the last control step [N s], ``[N, N]`` (see :meth:`track_contacts`); None: off
+        self.contact_impulse: np.ndarray | None = None
+        self._body_index = {b: i for i, b in enumerate(self.bodies)}
         n = self.n
         # per-car dynamic state; after a step these are new arrays (never modified in place)
         self._omega = np.zeros((n, 4))  # [rad/s] wheel spin
@@ -558,6 +561,20 @@ class CarFleet:
         mask = GROUND_GROUP | (CAR_GROUP if self.collide else 0)
         for b in self.bodies:
             p.setCollisionFilterGroupMask(b, -1, CAR_GROUP, mask, physicsClientId=self.client)
+
+    def track_contacts(self, on: bool = True) -> None:
+        """Record car-car contacts: after every :meth:`step`, ``contact_impulse [N, N]`` holds the impulse [N s]
+        each pair of chassis exchanged over the step's physics substeps (symmetric; 0: no contact)."""
+        self.contact_impulse = np.zeros((self.n, self.n)) if on else None
+
+    def _collect_contacts(self) -> None:
+        out, index, dt = self.contact_impulse, self._body_index, self.dt
+        for c in p.getContactPoints(physicsClientId=self.client):
+            a, b = index.get(c[1]), index.get(c[2])
+            if a is None or b is None or a == b or c[9] <= 0.0:
+                continue
+            out[a, b] += c[9] * dt
+            out[b, a] += c[9] * dt
 
     # ---- surfaces ---------------------------------------------------------------------------
     def get_state(self) -> dict[str, np.ndarray]:
@@ -793,6 +810,8 @@ class CarFleet:
         controls = self._controls(steer, throttle, brake)
         if self.surface_fn is not None:
             self.set_wheel_surfaces(self.surface_fn(self.wheel_xy))
+        if self.contact_impulse is not None:
+            self.contact_impulse = np.zeros((self.n, self.n))
         if self.backend == "python":
             self._step_python(controls)
         else:
@@ -895,6 +914,8 @@ class CarFleet:
             p.applyExternalForce(b, -1, world[i][0], pos[i], p.WORLD_FRAME, physicsClientId=cid)
             p.applyExternalTorque(b, -1, world[i][1], p.WORLD_FRAME, physicsClientId=cid)
         p.stepSimulation(physicsClientId=cid)
+        if self.contact_impulse is not None:
+            self._collect_contacts()
         self._read_state()
 
     # ---- python backend: the same equations, car by car, in floats -----------------------------
@@ -1064,6 +1085,8 @@ class CarFleet:
                 apply_f(b, -1, force, pos, world, physicsClientId=cid)
                 apply_t(b, -1, torque, world, physicsClientId=cid)
             p.stepSimulation(physicsClientId=cid)
+            if self.contact_impulse is not None:
+                self._collect_contacts()
             self._read_frames()
         self._omega = np.array(omega_all)
         self._fz = np.array(fz_all)

@@ -184,11 +184,12 @@ FLAGS = {"--policy": ("policy", "one"), "--track": ("tracks", "many"), "--tracks
          "--episodes": ("episodes", "one"), "--seed": ("seed", "one"), "--degradation": ("corruption", "one"),
          "--severity": ("severity", "one"), "--max-steps": ("max_steps", "one"), "--start": ("start", "one"),
          "--expert-laps": ("expert_laps", "one"), "--no-plots": ("plots", "false"), "--workers": ("workers", "one"),
-         "--out": ("out", "one")}
+         "--out": ("out", "one"), "--mode": ("mode", "one"), "--opponents": ("opponents", "one"), "--pace": ("pace", "one")}
 #: Types of the config's values (checked before anything runs).
 TYPES = {"policy": (str,), "tracks": (str, list), "surfaces": (str, list, type(None)), "laps": (int,), "episodes": (int,),
          "seed": (int,), "corruption": (str, type(None)), "severity": (int, type(None)), "max_steps": (int, type(None)),
-         "start": (str,), "expert_laps": (int,), "plots": (bool,), "workers": (int,), "out": (str, type(None))}
+         "start": (str,), "expert_laps": (int,), "plots": (bool,), "workers": (int,), "out": (str, type(None)),
+         "mode": (str,), "opponents": (int,), "pace": (float, int, list)}
 
 
 def run_config(cfg: Any, out: str | Path | None = None, verbose: bool = True) -> dict[str, Any]:
@@ -206,6 +207,16 @@ def run_config(cfg: Any, out: str | Path | None = None, verbose: bool = True) ->
     if not c["corruption"] and c["severity"] not in (None, 0):
         raise EvalError(f"severity={c['severity']} needs a degradation (corruption=<name>, --degradation <name>)")
     out = out or c["out"] or str(Path("outputs") / "evaluate" / Path(str(c["policy"])).stem / time.strftime("%Y-%m-%d_%H-%M-%S"))
+    if c["mode"] not in ("trial", "race"):
+        raise EvalError(f"mode must be trial or race, got {c['mode']!r}")
+    if c["mode"] == "race":
+        from torcsrl.evaluate.race import evaluate_race
+
+        if deg is not None:
+            raise EvalError("mode=race drives clean sensors; allowed: corruption=null with mode=race")
+        return evaluate_race(c["policy"], c["tracks"], c["surfaces"], laps=c["laps"], seed=c["seed"], out_dir=out,
+                             episodes=c["episodes"], opponents=c["opponents"], pace=c["pace"], env_kwargs={"start": c["start"]},
+                             max_steps=c["max_steps"], plots=c["plots"], verbose=verbose)
     return evaluate(c["policy"], c["tracks"], c["surfaces"], laps=c["laps"], seed=c["seed"], out_dir=out, degradation=deg,
                     episodes=c["episodes"], max_steps=c["max_steps"], env_kwargs={"start": c["start"]},
                     expert_laps=c["expert_laps"], plots=c["plots"], workers=c["workers"], verbose=verbose)
@@ -240,7 +251,7 @@ def main(argv: Sequence[str] | None = None) -> int:
               "(run it again for the full evaluation)", file=sys.stderr)
         return exit_code(err)
     out = Path(res["files"][0]).parent
-    print((out / "evaluation.md").read_text())
+    print((out / ("race.md" if (out / "race.md").exists() and not (out / "evaluation.md").exists() else "evaluation.md")).read_text())
     print(f"evaluation: {out}")
     return 0
 

@@ -1,4 +1,4 @@
-"""Pictures of time trials: top-down trajectories coloured by speed, camera GIFs."""
+"""Pictures of time trials and races: top-down trajectories (coloured by speed, or per car with contacts), camera GIFs."""
 
 from __future__ import annotations
 
@@ -72,3 +72,44 @@ def write_gif(frames: np.ndarray, path: str | Path, fps: int = 10) -> Path | Non
     return path
 
 
+
+
+def plot_race(track, trace: Mapping[str, object], path: str | Path, title: str = "") -> Path:
+    """Top-down PNG of a race: every car's trajectory in its own colour (the learner thick, labelled), grid positions
+    as dots, each collision (a contact begun) as a black cross on the car involved. ``trace``: ``xy [steps, cars, 2]``
+    (track frame), ``hits`` [(step, car)], ``learner`` (car index)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    xy = np.asarray(trace["xy"], dtype=float)
+    learner = int(trace.get("learner", 0))
+    span = np.ptp(np.vstack([track.left_edge, track.right_edge]), axis=0)
+    fig, ax = plt.subplots(figsize=(7.5, float(np.clip(6.5 * span[1] / max(span[0], 1.0) + 1.2, 3.0, 9.0))))
+    for edge in (track.left_edge, track.right_edge):
+        closed = np.vstack([edge, edge[:1]])
+        ax.plot(closed[:, 0], closed[:, 1], color="0.35", lw=0.8)
+    start = np.stack([track.to_world(0.0, float(track.w_left[0])), track.to_world(0.0, -float(track.w_right[0]))])
+    ax.plot(start[:, 0], start[:, 1], color="k", lw=2.5)
+    colors = plt.get_cmap("tab10")
+    if xy.ndim == 3 and len(xy):
+        for c in range(xy.shape[1]):
+            lw, z = (2.4, 3) if c == learner else (1.2, 2)
+            label = "learner" if c == learner else f"opponent {c}"
+            ax.plot(xy[:, c, 0], xy[:, c, 1], color=colors(c % 10), lw=lw, zorder=z, label=label, alpha=0.9)
+            ax.plot(xy[0, c, 0], xy[0, c, 1], "o", color=colors(c % 10), ms=5, zorder=4)
+        hits = list(trace.get("hits") or [])
+        if hits:
+            pts = np.array([xy[min(t, len(xy) - 1), c] for t, c in hits])
+            ax.plot(pts[:, 0], pts[:, 1], "x", color="k", ms=9, mew=2.2, zorder=5, label=f"collision ({len(hits)} car contacts)")
+        ax.legend(loc="upper right", fontsize=8)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title(title or track.name, fontsize=10)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return path

@@ -29,7 +29,7 @@ from torcsrl.policies import EpisodeContext, Policy
 #: Version of the episode protocol (part of every cache key: bump it when a metric's meaning changes).
 PROTOCOL_VERSION = 1
 #: Sensor keys in the env's canonical order.
-_SENSOR_ORDER = ("rangefinder", "state", "telemetry", "pixels", "depth")
+_SENSOR_ORDER = ("rangefinder", "state", "telemetry", "opponents", "pixels", "depth")
 
 class EvalError(ValueError):
     """Bad evaluation input (unknown track, surface or degradation, empty grid): one line."""

@@ -57,6 +57,8 @@ from .rangefinder import (
     BeamRain,
     BeamSnow,
     BeamSpray,
+    OpponentDropout,
+    OpponentNoise,
     DeadBeams,
     FovLoss,
     StuckBeams,
@@ -100,6 +102,8 @@ __all__ = [
     "BeamRain",
     "BeamSnow",
     "BeamSpray",
+    "OpponentDropout",
+    "OpponentNoise",
     "ScanDrop",
     # state
     "StateDegradation",

@@ -61,6 +61,7 @@ SENSOR_KEYS: dict[str, tuple[str, ...]] = {
     "rangefinder": ("rangefinder",),
     "state": ("state",),
     "camera": ("pixels", "depth"),
+    "opponents": ("opponents",),
 }
 
 _MASK64 = (1 << 64) - 1

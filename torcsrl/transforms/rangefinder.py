@@ -43,6 +43,8 @@ __all__ = [
     "BeamRain",
     "BeamSnow",
     "BeamSpray",
+    "OpponentNoise",
+    "OpponentDropout",
 ]
 
 
@@ -495,3 +497,30 @@ class BeamSpray(BeamDegradation):
             return x.copy()
         r = _F32(2.0) + _F32(float(self.opts["range"]) - 2.0) * (u / max(p, _TINY))
         return np.where(hit, np.minimum(x, r), x)
+
+
+# ------------------------------------------------------------------------ the opponents sensor
+class _OpponentSectors:
+    """Mixin: the 36-sector ``opponents`` sensor (TORCS SCR; [m], 200 = free sector) reuses the beam transforms on the
+    sectors that see a car; a free sector stays free (the sensor reports no phantom car out of noise)."""
+
+    sensor = "opponents"
+    default_in_keys = ("opponents",)
+
+    def _beams(self, x, key, st, reset, nb):
+        return torch.where(x < self.R, super()._beams(x, key, st, reset, nb), x)
+
+    def _beams_np(self, x, key, st):
+        return np.where(x < self._R32, super()._beams_np(x, key, st), x)
+
+
+class OpponentNoise(_OpponentSectors, BeamNoise):
+    """``opponents.noise``: d + N(0, a + b·d) on the sectors that see a car (the rangefinder's ladder)."""
+
+    name = "opponents.noise"
+
+
+class OpponentDropout(_OpponentSectors, BeamDropout):
+    """``opponents.dropout``: a sector that sees a car misses it with probability p (reads free, 200 m)."""
+
+    name = "opponents.dropout"

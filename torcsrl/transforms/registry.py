@@ -47,6 +47,7 @@ def _cam(cls, depth: bool | None = None) -> _Entry:
 
 _R = ("rangefinder",)
 _S = ("state",)
+_O = ("opponents",)
 
 _REGISTRY: dict[str, _Entry] = {
     # rangefinder
@@ -82,6 +83,10 @@ _REGISTRY: dict[str, _Entry] = {
     "camera.occlusion": _cam(camera.Occlusion),
     "camera.frame_drop": _Entry(temporal.FrameDrop, ("pixels",), ("pixels", "depth")),
     "camera.latency": _Entry(temporal.Latency, ("pixels",), ("pixels", "depth")),
+    # opponents (TORCS SCR's 36-sector sensor; the rangefinder's transforms on the sectors that see a car)
+    "opponents.noise": _Entry(rangefinder.OpponentNoise, _O, _O),
+    "opponents.dropout": _Entry(rangefinder.OpponentDropout, _O, _O),
+    "opponents.latency": _Entry(temporal.Latency, _O, _O),
 }
 
 #: Kept out of training-time randomisation (as ImageNet-C holds out 4 corruptions): one

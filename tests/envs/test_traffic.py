@@ -1,0 +1,151 @@
+"""Cars that share a track (torcsrl.envs.traffic): contacts, the opponents sensor, determinism, bad input."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+
+from torcsrl.envs import make_env
+from torcsrl.envs.race import RaceCore
+from torcsrl.envs.traffic import TrafficError, TrafficSpec, _load_opponent_policy, opponent_sectors
+
+FAST = dict(control_hz=10, substeps=20)
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    torch.set_num_threads(1)
+
+
+def _place(core: RaceCore, car: int, s: float, d: float = 0.0, speed: float = 0.0) -> None:
+    """Put ``car`` at (s, d) of its track copy, heading along the track."""
+    t = core.car_tracks[car]
+    xy = np.asarray(t.to_world(s, d)) + core.car_origins()[car]
+    core.fleet.reset([car], xy[None], [float(t.heading(s))], speed)
+
+
+def test_opponent_sectors_hand_placed():
+    # car 0 at the origin heading +x; others ahead, left, behind-right, out of range, and one of another race
+    xy = np.array([[0.0, 0.0], [20.0, 0.5], [0.5, 30.0], [-50.0, -1.0], [0.0, -250.0], [5.0, 0.0]])
+    groups = np.array([0, 0, 0, 0, 0, 1])
+    out = opponent_sectors(xy, np.zeros(6), groups)
+    r = out[0]
+    assert r.shape == (36,) and r.dtype == np.float32
+    assert r[17] == pytest.approx(math.hypot(20.0, 0.5))  # ahead, slightly left: SCR's sector 17 ([-10, 0) clockwise)
+    assert r[9] == pytest.approx(math.hypot(0.5, 30.0))   # to the left (90 deg anticlockwise = -90 clockwise): sector 9
+    assert r[35] == pytest.approx(math.hypot(50.0, 1.0))  # behind, slightly right: the last sector
+    assert np.count_nonzero(r < 200.0) == 3 and (r[r >= 200.0] == 200.0).all()  # free sectors read 200 m
+    # the nearest car of a sector wins; heading turns the sectors (car 0 facing +y: car 1 now on its right)
+    out = opponent_sectors(np.array([[0.0, 0.0], [20.0, 0.0], [10.0, 0.0]]), np.array([math.pi / 2, 0.0, 0.0]), np.zeros(3, int))
+    assert out[0][27] == pytest.approx(10.0) and np.count_nonzero(out[0] < 200) == 1
+
+
+def test_opponents_key_and_rangefinder_ignores_cars():
+    env = make_env(track="oval", num_cars=1, seed=0, sensors=("rangefinder", "state", "opponents"),
+                   traffic={"opponents": 1, "driver": {"kind": "parked"}}, **FAST)
+    try:
+        env.reset()
+        c = env.core
+        _place(c, 1, 400.0)  # far away: nothing in range
+        _place(c, 0, 10.0)
+        c._locate()
+        c._observe()
+        far_rf = c.obs["rangefinder"].copy()
+        assert (c.obs["opponents"] == 200.0).all()
+        _place(c, 1, 22.0)  # 12 m straight ahead, on the centre line
+        c._locate()
+        c._observe()
+        opp = c.obs["opponents"][0]
+        assert opp.argmin() in (17, 18) and opp.min() == pytest.approx(12.0, abs=0.05)
+        np.testing.assert_array_equal(c.obs["rangefinder"], far_rf)  # beams see the track edges only, never a car
+    finally:
+        env.close()
+
+
+def test_contact_between_two_cars_is_detected_and_reported():
+    env = make_env(track="oval", num_cars=1, seed=0, sensors=("state",), traffic={"opponents": 1, "driver": {"kind": "parked"}},
+                   **FAST)
+    try:
+        env.reset()
+        c = env.core
+        _place(c, 1, 30.0)  # a parked car 20 m ahead on the learner's line
+        _place(c, 0, 10.0, speed=15.0)
+        c._locate()
+        hit = None
+        for t in range(30):
+            td = env.step(TensorDict({"action": torch.tensor([0.0, 1.0])}, []))
+            info = td["next", "info"]
+            if int(info["collisions"]) > 0:
+                hit = t
+                break
+        assert hit is not None, "the learner never touched the parked car"
+        assert c.fleet.contact_impulse[0, 1] > 0 and c.fleet.contact_impulse[0, 1] == c.fleet.contact_impulse[1, 0]
+        assert float(info["impulse"]) > 0 and float(info["damage"]) >= float(info["impulse"]) - 1e-6
+        assert c.traffic.collisions[1] == 1  # the other car of the contact is booked too
+        assert float(info["reward_collision"]) == pytest.approx(float(info["impulse"]), rel=1e-5)
+    finally:
+        env.close()
+
+
+def _rollout(seed: int, steps: int = 25):
+    env = make_env(track="oval", num_cars=2, seed=seed, sensors=("state", "opponents"), start="random",
+                   traffic={"opponents": 2, "driver": {"kind": "expert", "pace": [0.7, 0.9]}}, **FAST)
+    try:
+        torch.manual_seed(0)
+        acts = torch.rand(steps, 2, 2) * 2 - 1
+        td = env.reset()
+        out = [td["opponents"].clone()]
+        for a in acts:
+            td = env.step(td.set("action", a))
+            out.append(torch.cat([td["next", "opponents"], td["next", "info", "racePos"].float(), td["next", "state"]], -1))
+            td = td["next"]
+        return torch.stack(out[1:]), out[0], env.core.traffic.pace.copy()
+    finally:
+        env.close()
+
+
+def test_same_seed_same_race():
+    a, a0, pa = _rollout(3)
+    b, b0, pb = _rollout(3)
+    torch.testing.assert_close(a, b, rtol=0, atol=0)
+    torch.testing.assert_close(a0, b0, rtol=0, atol=0)
+    np.testing.assert_array_equal(pa, pb)
+    _, c0, pc = _rollout(4)
+    assert not np.array_equal(pa, pc)  # another seed: other paces (and grid order)
+
+
+def test_exact_resume_with_opponents():
+    kw = dict(track="oval", num_cars=1, seed=5, sensors=("state", "opponents"),
+              traffic={"opponents": 2, "driver": {"kind": "expert", "pace": 0.8}}, **FAST)
+    env, twin = make_env(**kw), make_env(**kw)
+    try:
+        td = env.reset()
+        twin.reset()
+        act = td.set("action", torch.tensor([0.0, 0.6]))
+        for _ in range(8):
+            env.step(act)
+        twin.set_sim_state(env.get_sim_state())
+        for _ in range(8):
+            x = env.step(act)["next"]
+            y = twin.step(act)["next"]
+            torch.testing.assert_close(x["opponents"], y["opponents"], rtol=0, atol=0)
+            torch.testing.assert_close(x["state"], y["state"], rtol=0, atol=0)
+    finally:
+        env.close()
+        twin.close()
+
+
+def test_bad_traffic_fails_in_one_line():
+    with pytest.raises(TrafficError, match="do not fit the grid of 12 slots; allowed: opponents <= 11") as e:
+        TrafficSpec.from_config({"opponents": 12})
+    assert "\n" not in str(e.value)
+    with pytest.raises(TrafficError, match="allowed: expert, policy, slow, parked"):
+        TrafficSpec.from_config({"driver": {"kind": "bus"}})
+    with pytest.raises(TrafficError, match="cannot give an opponent; allowed: a policy on rangefinder, state, telemetry, opponents"):
+        _load_opponent_policy("reference_camera")
+    with pytest.raises(ValueError, match="traffic: unknown keys"):
+        RaceCore(track="oval", traffic={"opponent": 3})

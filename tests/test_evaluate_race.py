@@ -1,0 +1,44 @@
+"""The evaluate command's race mode: N laps against K opponents, the race table and its files."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from torcsrl.evaluate import EvalError
+from torcsrl.evaluate.race import RACE_COLUMNS, evaluate_race, race_summary, race_table
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    torch.set_num_threads(1)
+
+
+def test_race_table_from_a_short_race(tmp_path):
+    tr = {"opponents": 2, "driver": {"kind": "expert", "pace": 0.6}, "order": "fixed", "learner_slot": "first"}
+    res = evaluate_race("expert", "oval", laps=1, out_dir=tmp_path, traffic=tr, env_kwargs={"control_hz": 10, "substeps": 20},
+                        verbose=False)
+    row = res["episodes"][0]
+    assert row["success"] and row["position"] == 1 and row["win"]  # from pole at full pace against 60 % pace
+    assert row["collisions"] == 0 and row["damage"] == 0.0 and row["lead_m"] > 0 and row["opponents"] == 2
+    s = res["summary"][0]
+    assert (s["races"], s["finished"], s["wins"], s["mean_position"]) == (1, 1, 1, 1.0)
+    md = (tmp_path / "race.md").read_text()
+    assert "| " + " | ".join(RACE_COLUMNS) + " |" in md and "| oval | asphalt | 1 | 1/1 | 1/1 | 1.00 | 0.00 |" in md
+    assert (tmp_path / "race_oval_asphalt.png").stat().st_size > 0 and (tmp_path / "race_episodes.csv").exists()
+
+
+def test_race_summary_counts_dnf_and_table_rows():
+    rows = [{"track": "t", "surface": "asphalt", "opponents": 3, "position": 2, "win": False, "collisions": 1, "overtakes": 1,
+             "damage": 0.5, "gap_ahead_m": 4.0, "lead_m": -4.0},
+            {"track": "t", "surface": "asphalt", "opponents": 3, "position": None, "win": False, "collisions": 3, "overtakes": 0,
+             "damage": 2.5, "gap_ahead_m": 9.0, "lead_m": -30.0}]
+    s = race_summary(rows)
+    assert (s["finished"], s["wins"], s["mean_position"], s["collisions_per_race"]) == (1, 0, 2.0, 2.0)
+    header, body = race_table([s])
+    assert header == list(RACE_COLUMNS) and body[0][3:6] == ["1/2", "0/2", "2.00"]
+
+
+def test_race_mode_bad_input_one_line():
+    with pytest.raises(EvalError, match="do not fit the grid"):
+        evaluate_race("expert", "oval", opponents=20, verbose=False)
