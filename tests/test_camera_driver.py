@@ -88,7 +88,7 @@ def test_sight_limited_teacher_plans_its_speed_on_what_the_camera_can_see():
     st = np.zeros(len(STATE_SLOTS))
     st[STATE_SLOTS.index("speedX_kmh")] = 150.0  # 41.7 m/s on a long straight, asphalt
     straight = np.full(19, 200.0)
-    assert grip.act(straight, st, mu=1.0)[1] > 0 > sight.act(straight, st, mu=1.0)[1]  # it cannot stop within 70 m: it brakes
+    assert grip.act(straight, st, mu=1.0)[1] > 0 > sight.act(straight, st, mu=1.0)[1]  # it cannot stop within 80 m: it brakes
     near = np.full(19, 40.0)  # a bend nearer than the sight distance: both see the same
     assert grip.act(near, st, mu=1.0) == sight.act(near, st, mu=1.0)
     with pytest.raises(PolicyError, match="number of metres"):
@@ -125,7 +125,7 @@ def test_distillation_trains_a_camera_student_from_a_privileged_teacher(distille
     cfg, res, out = distilled
     assert res["updates"] == 20 and res["frames"] == 60
     meta = json.loads((out / "demos" / "demos.json").read_text())
-    assert meta["teacher"] == "sensor_grip" and meta["frames"] == 120
+    assert meta["teacher"] == "sensor_sight" and meta["frames"] == 120
     stored = {p.name.split(".")[0] for p in (out / "demos" / "rows").glob("*.memmap")}
     assert (out / "logs" / "dagger" / "scalars" / "loss" / "aux.csv").is_file()  # algo.aux_privileged > 0 logs its loss
     assert {"pixels", "telemetry", "expert_action", "privileged"} <= stored and not stored & {"rangefinder", "state"}  # only what the student sees
