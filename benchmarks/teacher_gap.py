@@ -1,0 +1,92 @@
+"""Where a student and its teacher part: drive a checkpoint on one track and surface while the teacher labels every
+state the student reaches (the DAgger view), and print the per-step gap.
+
+    python benchmarks/teacher_gap.py CKPT --track oval --surface asphalt [--teacher sensor_sight] [--steps 1500]
+        [--frames out.png]
+
+Prints how the episode ended, the mean |steer| and |pedal| gaps, the fraction of steps each brakes (pedal < 0),
+and the last 40 steps (distance from start [m], speedX [km/h], trackPos, angle [rad], the student's and the
+teacher's steer and pedal). ``--frames`` writes every 10th camera frame of the last 70 steps, labelled with the
+speed and the teacher's pedal, to a PNG (camera students). This is how the sight-200 m teacher's camera student was
+found never to brake on asphalt (torcsrl/assets/reference_camera.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import torch
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("checkpoint")
+    ap.add_argument("--track", default="oval")
+    ap.add_argument("--surface", default="asphalt")
+    ap.add_argument("--teacher", default="sensor_sight", help="a demos.teacher name (torcsrl.demos.TEACHERS)")
+    ap.add_argument("--steps", type=int, default=1500)
+    ap.add_argument("--seed", type=int, default=123)
+    ap.add_argument("--frames", default=None, help="PNG of the last frames (camera students)")
+    a = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    from omegaconf import OmegaConf
+    from torchrl.envs.utils import step_mdp
+
+    from torcsrl.demos import make_demo_env, make_teacher
+    from torcsrl.policies import CheckpointPolicy, EpisodeContext
+
+    pol = CheckpointPolicy(a.checkpoint)
+    cfg = OmegaConf.create(torch.load(a.checkpoint, map_location="cpu", weights_only=False)["config"])
+    cfg.env.track, cfg.env.surface = a.track, a.surface
+    env = make_demo_env(cfg, a.seed)
+    core = env.base_env.core
+    teacher = make_teacher(a.teacher)
+    td = env.reset()
+    teacher.reset(EpisodeContext(track=core.car_tracks[0], seed=a.seed, dt=float(core.dt)))
+    rows, frames, end = [], [], "step cap"
+    try:
+        for t in range(a.steps):
+            teacher(td)
+            label = td.get("action").clone()
+            with torch.no_grad():
+                pol(td)
+            act, st = td.get("action"), td.get("state_clean")
+            rows.append((float(td.get(("info", "distFromStart"))), float(st[2]), float(st[1]), float(st[0]), *act.tolist(), *label.tolist()))
+            if "pixels" in td.keys():
+                frames.append(td.get("pixels").clone())
+            td = env.step(td)
+            nxt = td.get("next")
+            if bool(nxt.get("done").reshape(-1)[0]):
+                end = f"{'terminated' if bool(nxt.get('terminated').reshape(-1)[0]) else 'truncated'} at step {t}, " \
+                      f"{int(nxt.get(('info', 'lap')).reshape(-1)[0])} lap(s)"
+                break
+            td = step_mdp(td)
+    finally:
+        env.close()
+    r = np.asarray(rows)
+    gap = np.abs(r[:, 4:6] - r[:, 6:8])
+    print(f"{a.checkpoint} on {a.track}/{a.surface}, teacher {a.teacher}: {end}")
+    print(f"mean |steer gap| {gap[:, 0].mean():.3f}, mean |pedal gap| {gap[:, 1].mean():.3f}; "
+          f"brakes on {100 * (r[:, 5] < 0).mean():.0f} % of steps (teacher: {100 * (r[:, 7] < 0).mean():.0f} %)")
+    print("| dist m | speedX km/h | trackPos | angle rad | steer | pedal | teacher steer | teacher pedal |\n|" + "---|" * 8)
+    for row in r[-40::4]:
+        print("| " + " | ".join(f"{v:.2f}" for v in row) + " |")
+    if a.frames and frames:
+        import cv2
+
+        tiles = []
+        for i in range(max(0, len(frames) - 70), len(frames), 10):
+            im = np.ascontiguousarray(frames[i].numpy().transpose(1, 2, 0)[:, :, ::-1])
+            im = cv2.resize(im, None, fx=4, fy=4, interpolation=cv2.INTER_NEAREST)
+            cv2.putText(im, f"t{i} {r[i, 1]:.0f} km/h teacher pedal {r[i, 7]:+.2f}", (3, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1)
+            tiles.append(im)
+        while len(tiles) % 4:
+            tiles.append(np.zeros_like(tiles[0]))
+        cv2.imwrite(a.frames, np.concatenate([np.concatenate(tiles[i:i + 4], 1) for i in range(0, len(tiles), 4)], 0))
+        print(f"wrote {a.frames}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
