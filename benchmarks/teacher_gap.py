@@ -49,9 +49,10 @@ def main(argv: list[str] | None = None) -> int:
         for t in range(a.steps):
             teacher(td)
             label = td.get("action").clone()
-            with torch.no_grad():
-                pol(td)
-            act, st = td.get("action"), td.get("state_clean")
+            with torch.no_grad():  # the demo env already applies the run's observation pipeline (scaling included):
+                act = pol.actor(*(td.get(k) for k in pol.obs_keys)).reshape(label.shape)  # the actor, not pol(td)
+            td.set("action", act)
+            st = td.get("state_clean")
             rows.append((float(td.get(("info", "distFromStart"))), float(st[2]), float(st[1]), float(st[0]), *act.tolist(), *label.tolist()))
             if "pixels" in td.keys():
                 frames.append(td.get("pixels").clone())
