@@ -16,6 +16,11 @@ collector's in-flight episode and the replay buffer: on CPU with the in-process 
 env with ``get_sim_state``, like the toy env) the resumed run continues exactly as the
 uninterrupted one would have.
 
+A curriculum (``curriculum=guppy|robust``, :mod:`torcsrl.curriculum`) trains in stages: the envs are built from the
+current stage's config, and after a validation that meets the stage's criterion :func:`enter_stage` rebuilds the
+training env, its collector and the validation envs from the next stage's; the stage, its validations and the
+promotions are in every checkpoint, so a resumed run resumes the stage.
+
 Speed (``benchmarks/train_throughput.py``; the loop's hot path allocates little and reads no
 config): the in-process collector is :class:`~torcsrl.utils.collector.StepCollector` (TorchRL's
 ``Collector`` semantics without its per-step bookkeeping; ``MultiSyncCollector`` for worker
