@@ -170,7 +170,7 @@ class Curriculum:
         """The curriculum of a training config (``curriculum.stages``; none or empty: no stages). :class:`CurriculumError`
         (one line) for a malformed stage, an unknown criterion metric, a non-final stage without a criterion, or an
         override of a key a stage may not change."""
-        cur = cfg.get("curriculum") if isinstance(cfg, Mapping) or isinstance(cfg, DictConfig) else None
+        cur = cfg.get("curriculum") if cfg is not None else None
         raw = OmegaConf.to_container(cur, resolve=False) if isinstance(cur, DictConfig) else (dict(cur) if cur else {})
         unknown = [k for k in raw if k != "stages"]
         if unknown:
