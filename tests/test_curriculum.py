@@ -80,6 +80,8 @@ def test_criterion_thresholds_lap_targets_and_nan():
     assert fast.met([fast.value({"eval/lap_time": 55.0}, 1)], 0)[0]
     clean3 = Criterion("clean", at_least=1.0)  # with eval.lap_limit = 3, a clean validation drove 3 laps
     assert clean3.value(val(2), 3) == 0.0 and clean3.value(val(3, collisions=0), 3) == 1.0
+    per_track = {"eval/laps": 1.5, "eval/a/laps": 3.0, "eval/b/laps": 3.0, "eval/c/laps": 0.0, "eval/a/collisions": 1.0}
+    assert clean3.value(per_track, 3) == pytest.approx(1 / 3)  # the share of validation tracks driven clean (b)
     cur = Curriculum.from_config(with_stages(compose_cfg("env=toy", "eval.lap_limit=3"), {
         "x": {"overrides": {}, "promote": {"metric": "clean", "at_least": 1}}, "y": {}}))
     assert cur.lap_target == 3 and cur.observe(val(2), 1) is None and cur.observe(val(3), 2) is not None

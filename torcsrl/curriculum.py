@@ -51,8 +51,8 @@ __all__ = ["Curriculum", "CurriculumError", "Criterion", "Stage", "METRICS", "RU
 
 #: What a criterion may read from a validation (``torcsrl.train.validate_all``):
 METRICS = {
-    "clean": "1 when the validation drove clean: laps (the worst track's, with eval.per_track) >= eval.lap_limit "
-             "(1 if null) and no collision with another car; else 0. Over k validations with rule mean: the clean rate",
+    "clean": "the share of the validation's tracks (eval.per_track; else its one env: 0 or 1) driven clean: laps >= "
+             "eval.lap_limit (1 if null) and no collision with another car. Over k validations with rule mean: the clean-lap rate",
     "eval/laps": "laps completed per validation episode (mean over the tracks with eval.per_track)",
     "eval/laps_min": "laps of the worst validation track (eval.per_track; else eval/laps)",
     "eval/reward": "return of a validation episode",
@@ -116,7 +116,11 @@ class Criterion:
         """This criterion's number from one validation's metrics."""
         laps = metrics.get("eval/laps_min", metrics.get("eval/laps", math.nan))
         if self.metric == "clean":
-            return float(laps >= lap_target and metrics.get("eval/collisions", 0.0) == 0)
+            tracks = [k[5:-5] for k in metrics if k.startswith("eval/") and k.endswith("/laps") and k.count("/") == 2]
+            if not tracks:  # one validation env: eval/laps (the mean over eval.episodes) reaches the target only if all did
+                tracks = [""]
+            pre = [f"eval/{t}/" if t else "eval/" for t in tracks]
+            return sum(metrics[p + "laps"] >= lap_target and metrics.get(p + "collisions", 0.0) == 0 for p in pre) / len(pre)
         if self.metric == "eval/laps_min":
             return float(laps)
         if self.metric == "eval/collisions":
