@@ -40,7 +40,7 @@ CONF_DIR = Path(__file__).resolve().parent / "conf"
 #: Top-level keys beyond conf/train.yaml's own and its groups' (set by presets).
 EXTRA_TOP_KEYS = {"optimized_metric": (str, type(None))}
 #: Config sections filled by groups (checked on their own below).
-GROUP_SECTIONS = ("algo", "env", "logger", "degradation")
+GROUP_SECTIONS = ("algo", "env", "logger", "degradation", "curriculum")
 #: env keys that train() sets itself (seed + 1000 (worker + 1), cpu).
 ENV_KEYS_SET_BY_TRAIN = ("seed", "device")
 #: (low, high, what) bounds of numbers; None = unbounded; "open" excludes the low end.
@@ -188,6 +188,10 @@ def problems(cfg: DictConfig | Mapping) -> list[str]:
             resolve_threads(c["threads"], 0, cores=4)
         except (ValueError, TypeError) as err:
             out.append(f"threads: {err}")
+    if c.get("curriculum") is not None:  # its stages, and every stage's config checked like this one (torcsrl/curriculum.py)
+        from torcsrl.curriculum import problems as curriculum_problems
+
+        out += curriculum_problems(cfg if isinstance(cfg, DictConfig) else OmegaConf.create(dict(cfg)), list(out))
     return out
 
 

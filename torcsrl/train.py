@@ -16,6 +16,11 @@ collector's in-flight episode and the replay buffer: on CPU with the in-process 
 env with ``get_sim_state``, like the toy env) the resumed run continues exactly as the
 uninterrupted one would have.
 
+A curriculum (``curriculum=guppy|robust``, :mod:`torcsrl.curriculum`) trains in stages: the envs are built from the
+current stage's config, and after a validation that meets the stage's criterion :func:`enter_stage` rebuilds the
+training env, its collector and the validation envs from the next stage's; the stage, its validations and the
+promotions are in every checkpoint, so a resumed run resumes the stage.
+
 Speed (``benchmarks/train_throughput.py``; the loop's hot path allocates little and reads no
 config): the in-process collector is :class:`~torcsrl.utils.collector.StepCollector` (TorchRL's
 ``Collector`` semantics without its per-step bookkeeping; ``MultiSyncCollector`` for worker
@@ -47,6 +52,7 @@ from torchrl.envs import Compose, EnvBase, InitTracker, RewardSum
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torcsrl import agents
+from torcsrl.curriculum import Curriculum, CurriculumError
 from torcsrl.utils.checkpoint import (
     CheckpointError,
     checkpoint_path,
@@ -359,15 +365,33 @@ def init_actor(spec: str, actor: torch.nn.Module, cfg: DictConfig, env: EnvBase,
     return path
 
 
-def make_collector(cfg: DictConfig, env: EnvBase, policy) -> StepCollector | MultiSyncCollector:
-    """In-process :class:`StepCollector` (num_workers = 0) or TorchRL's MultiSyncCollector over ``num_workers`` env processes."""
+def make_collector(cfg: DictConfig, env: EnvBase, policy, collected: int = 0) -> StepCollector | MultiSyncCollector:
+    """In-process :class:`StepCollector` (num_workers = 0) or TorchRL's MultiSyncCollector over ``num_workers`` env processes.
+    ``collected``: frames collected before (a curriculum stage's new collector): they count towards ``init_random_frames``."""
     c = cfg.collector
     fpb = int(c.frames_per_batch or max(1, env.batch_size.numel()))  # null: one env step of every car
     if int(c.num_workers) == 0:
-        return StepCollector(env, policy, fpb, int(c.init_random_frames))
+        collector = StepCollector(env, policy, fpb, int(c.init_random_frames))
+        collector.frames = int(collected)
+        return collector
     fns = [functools.partial(make_train_env, cfg, i) for i in range(int(c.num_workers))]
     return MultiSyncCollector(fns, policy, frames_per_batch=fpb * int(c.num_workers), total_frames=-1,
-                              init_random_frames=int(c.init_random_frames), exploration_type=ExplorationType.RANDOM)
+                              init_random_frames=max(0, int(c.init_random_frames) - int(collected)),
+                              exploration_type=ExplorationType.RANDOM)
+
+
+def enter_stage(cfg: DictConfig, frames: int, env: EnvBase, collector, eval_envs: dict[str, EnvBase], policy, buffer: ReplayBuffer):
+    """(env, collector, eval_envs) of a new curriculum stage, ``cfg`` being the stage's config
+    (:meth:`torcsrl.curriculum.Curriculum.config`); the old ones are closed. The running episodes end here as time-limit
+    truncations (:meth:`ReplayBuffer.end_episodes`): bootstrapped from their last observation, never joined to the new
+    env's first. Networks, optimisers, buffer and exploration noise carry on (a stage never changes what they see)."""
+    buffer.end_episodes()
+    collector.shutdown()
+    for e in (env, *eval_envs.values()):
+        if not e.is_closed:
+            e.close()
+    env = make_train_env(cfg)
+    return env, make_collector(cfg, env, policy, collected=frames), make_eval_envs(cfg)
 
 
 # ---------------------------------------------------------------------------------------
@@ -398,6 +422,8 @@ def validate_all(envs: dict[str, EnvBase], policy, episodes: int, max_steps: int
     out["eval/laps"] = sum(m["eval/laps"] for m in per.values()) / n
     out["eval/laps_min"] = min(m["eval/laps"] for m in per.values())
     out["eval/lap_time"] = sum(m["eval/lap_time"] for m in per.values()) / n  # NaN if any track has none
+    if all("eval/collisions" in m for m in per.values()):
+        out["eval/collisions"] = sum(m["eval/collisions"] for m in per.values()) / n
     return out
 
 
@@ -405,22 +431,29 @@ def validate_all(envs: dict[str, EnvBase], policy, episodes: int, max_steps: int
 def validate(env: EnvBase, policy, episodes: int, max_steps: int) -> dict[str, float]:
     """Summers's protocol: deterministic policy, no noise, nothing stored, no updates. Each episode is
     :func:`torcsrl.evaluate.protocol.drive_episode`, the one episode loop evaluate and report use too
-    (lap accounting, step cap, termination); the return is the float64 sum of the step rewards."""
+    (lap accounting, step cap, termination); the return is the float64 sum of the step rewards. In a race
+    (``env.traffic``) also ``eval/collisions``: contacts begun with another car per episode."""
     from torcsrl.evaluate.protocol import drive_episode
 
-    rewards, laps, lap_times = [], [], []
+    rewards, laps, lap_times, collisions = [], [], [], []
+    traffic = getattr(getattr(getattr(env, "base_env", env), "core", None), "traffic", None)
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         for _ in range(episodes):
             book, _ = drive_episode(env, policy, 1, max_steps)
             rewards.append(book.ret[0])
             laps.append(book.prev_lap[0])
             lap_times += book.lap_times[0]
-    return {
+            if traffic is not None:
+                collisions.append(int(traffic.collisions[0]))  # the learner's (car 0's) count, booked until its episode ended
+    out = {
         "eval/reward": sum(rewards) / len(rewards),
         "eval/laps": sum(laps) / len(laps),
         "eval/lap_time": min(lap_times) if lap_times else float("nan"),
         "eval/lap_time_mean": sum(lap_times) / len(lap_times) if lap_times else float("nan"),
     }
+    if traffic is not None:
+        out["eval/collisions"] = sum(collisions) / len(collisions)
+    return out
 
 
 # ---------------------------------------------------------------------------------------
@@ -546,15 +579,19 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     device = torch.device(str(cfg.device))  # networks, losses, sampled batches; envs, collector and buffer stay on the CPU
     on_device = device.type != "cpu"
 
-    env = make_train_env(cfg)
+    curriculum = Curriculum.from_config(cfg)  # conf/curriculum: ordered stages of env overrides (none: cfg itself)
+    if cfg.checkpoint.resume:
+        _resume_stage(cfg, ckpt_dir, curriculum)  # an exact resume resumes the checkpoint's stage
+    stage_cfg = curriculum.config(cfg)  # the env, validation and degradation settings of the current stage
+    env = make_train_env(stage_cfg)
     actor, critic, loss = make_networks(cfg, agent, env, obs_keys, device)
     target_updater = agent.make_target_updater(cfg.algo, loss)
     policy = agent.make_exploration(cfg.algo, actor, env, obs_keys)
     optim = agent.make_optimizers(cfg.algo, loss)
     buffer = make_buffer(cfg, run_dir)
-    demos = make_demos(cfg, env, run_dir)
-    collector = make_collector(cfg, env, policy)
-    eval_envs = make_eval_envs(cfg)
+    demos = make_demos(curriculum.config(cfg, stage=0), env, run_dir)  # written (once) in the first stage's env
+    collector = make_collector(stage_cfg, env, policy)
+    eval_envs = make_eval_envs(stage_cfg)
     meta = {**expected_meta(cfg, env, obs_keys), "critic_obs_layout": _layout(env, critic_obs_keys(cfg))}
     counters = Counters(next_eval=int(cfg.eval.every_episodes), next_ckpt=int(cfg.checkpoint.every_frames) or total,
                         next_log=int(cfg.logger.every_frames))
@@ -569,6 +606,9 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     progress = Progress(total, enabled=bool(cfg.progress))
     multi = int(cfg.collector.num_workers) > 0
     print(f"[torcsrl] training {cfg.algo.name} on env={cfg.env.name} for {total} steps; outputs in {run_dir}", file=sys.stderr)
+    if curriculum.active:
+        _write_curriculum(curriculum, run_dir)
+        print(f"[torcsrl] curriculum: stage {curriculum.stage} {curriculum.name!r} of {', '.join(curriculum.names)}", file=sys.stderr)
 
     # plain values for the hot loop (an OmegaConf lookup costs ~10 us)
     hot = plain(cfg.algo)
@@ -592,7 +632,7 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         while counters.frames < total:
             if max_wall_s and time.perf_counter() - t_start > max_wall_s:  # the wall-clock budget: stop with a checkpoint
                 print(f"[torcsrl] wall-clock budget of {cfg.max_minutes} min reached at {counters.frames} steps", file=sys.stderr)
-                _save(cfg, ckpt_dir, meta, counters, loss, optim, policy, collector, env, eval_envs, buffer, threads)
+                _save(cfg, ckpt_dir, meta, counters, loss, optim, policy, collector, env, eval_envs, buffer, threads, curriculum)
                 break
             # collect -> extend
             data = next(batches)
@@ -633,6 +673,8 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
                 metrics.update({"train/frames": counters.frames, "train/episodes": counters.episodes, "train/buffer_size": len(buffer),
                                 "time/steps_per_s": sps, "time/updates_per_s": (counters.updates - u_win) / max(now - t_win, 1e-9),
                                 "time/elapsed_s": now - t_start, "time/cpu_s": time.process_time() - cpu_start})
+                if curriculum.active:
+                    metrics["train/stage"] = curriculum.stage
                 if ep_rewards:
                     metrics["train/episode_reward"] = sum(ep_rewards) / len(ep_rewards)
                     if ep_laps:
@@ -652,13 +694,19 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
                 progress.eval_text = f"reward {eval_metrics['eval/reward']:.2f}, laps {eval_metrics['eval/laps']:.1f}"
                 while counters.next_eval <= counters.episodes:
                     counters.next_eval += int(cfg.eval.every_episodes)
+                promotion = curriculum.observe(eval_metrics, counters.frames, counters.episodes)
+                if promotion:  # the next stage: rebuild the training env, its collector and the validation envs
+                    env, collector, eval_envs = enter_stage(curriculum.config(cfg), counters.frames, env, collector, eval_envs,
+                                                            policy, buffer)
+                    batches = iter(collector)
+                    _log_promotion(loggers, promotion, curriculum, run_dir)
 
             # checkpoint
             if counters.frames >= counters.next_ckpt or counters.frames >= total:
                 every = int(cfg.checkpoint.every_frames) or total
                 while counters.next_ckpt <= counters.frames:  # advanced first: a resumed run does not save again at once
                     counters.next_ckpt += every
-                _save(cfg, ckpt_dir, meta, counters, loss, optim, policy, collector, env, eval_envs, buffer, threads)
+                _save(cfg, ckpt_dir, meta, counters, loss, optim, policy, collector, env, eval_envs, buffer, threads, curriculum)
         progress.update(counters.frames, (counters.frames - f_win) / max(time.perf_counter() - t_win, 1e-9), force=True)
         if cfg.buffer.save_at_end:
             save_dir_atomically(run_dir / "buffer_final", lambda d: buffer.dumps(str(d)))
@@ -684,6 +732,7 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         "checkpoint": str(latest_checkpoint(ckpt_dir)) if latest_checkpoint(ckpt_dir) else None,
         **{k: float(v) for k, v in last.items()},
         **eval_metrics,
+        **({"train/stage": curriculum.stage, "train/stage_name": curriculum.name} if curriculum.active else {}),
     }
     print(f"[torcsrl] done: {counters.frames} steps, {counters.episodes} episodes in {wall:.1f} s; outputs in {run_dir}\n"
           f"[torcsrl] last checkpoint: {result['checkpoint']}\n"
@@ -701,14 +750,53 @@ def _track_arg(track) -> str:
     return " ".join(str(t) for t in names)
 
 
-def _save(cfg, ckpt_dir, meta, counters, loss, optim, policy, collector, env, eval_envs, buffer, threads) -> Path:
+def _log_promotion(loggers, event: dict, curriculum: Curriculum, run_dir: Path) -> None:
+    """A promotion: ``train/stage`` and ``curriculum/promotion`` (the number that met the criterion) logged at its frame,
+    a line on stderr, and ``<run_dir>/curriculum.json`` rewritten (stages, current stage, every promotion)."""
+    log_metrics(loggers, {"train/stage": event["stage"], "curriculum/promotion": event["value"]}, event["frames"])
+    print(f"[torcsrl] curriculum: promoted from {event['from']!r} to stage {event['stage']} {event['to']!r} at {event['frames']} steps "
+          f"({event['criterion']}: {event['value']:.3g} after {event['validations']} validations)", file=sys.stderr)
+    _write_curriculum(curriculum, run_dir)
+
+
+def _write_curriculum(curriculum: Curriculum, run_dir: Path) -> None:
+    import json
+
+    tmp = Path(run_dir) / "curriculum.json.tmp"
+    tmp.write_text(json.dumps(curriculum.summary(), indent=2) + "\n")
+    tmp.replace(Path(run_dir) / "curriculum.json")
+
+
+def _resume_stage(cfg: DictConfig, ckpt_dir: Path, curriculum: Curriculum) -> None:
+    """Put ``curriculum`` in the stage of the checkpoint this run resumes from, before the envs are built.
+    CheckpointError (one line) when the checkpoint was written under other stages, or its stage's env settings differ
+    from this config's at that stage. A checkpoint that cannot be read is left to :func:`_resume` to report."""
+    path = latest_checkpoint(ckpt_dir) if cfg.checkpoint.resume == "latest" else Path(cfg.checkpoint.resume)
+    if path is None or not path.is_file():
+        return
+    try:
+        ck = load_checkpoint(path)
+    except CheckpointError:
+        return
+    state = ck.get("curriculum")
+    try:
+        curriculum.load_state_dict(state, where=f"checkpoint {path}")
+    except CurriculumError as err:
+        raise CheckpointError(str(err)) from None
+    if state:
+        _check_same_env(curriculum.config(cfg), {"config": state["config"]}, path)
+
+
+def _save(cfg, ckpt_dir, meta, counters, loss, optim, policy, collector, env, eval_envs, buffer, threads,
+          curriculum: Curriculum | None = None) -> Path:
     path = checkpoint_path(ckpt_dir, counters.frames)
+    stage_cfg = curriculum.config(cfg) if curriculum is not None else cfg  # this curriculum stage's env settings
     buffer_dir = None
     if cfg.checkpoint.buffer:
         buffer_dir = save_dir_atomically(path.with_name(path.stem + "_buffer"), lambda d: buffer.dumps(str(d))).name
     multi = isinstance(collector, MultiSyncCollector)
     payload = {
-        "meta": {**meta, "pipeline": pipeline_record(cfg, env)},
+        "meta": {**meta, "pipeline": pipeline_record(stage_cfg, env)},
         "counters": asdict(counters),
         "loss": loss.state_dict(),
         "optim": {k: o.state_dict() for k, o in optim.items()},
@@ -720,6 +808,9 @@ def _save(cfg, ckpt_dir, meta, counters, loss, optim, policy, collector, env, ev
         "threads": threads,
         "config": OmegaConf.to_yaml(cfg),
     }
+    if curriculum is not None and curriculum.active:  # the stage, its validations, the promotions; its env settings
+        payload["curriculum"] = {**curriculum.state_dict(), "config": OmegaConf.to_yaml(
+            {k: OmegaConf.to_container(stage_cfg[k], resolve=True) for k in RESUME_MUST_MATCH if k in stage_cfg})}
     save_checkpoint(path, payload)
     prune(ckpt_dir, int(cfg.checkpoint.keep))
     return path

@@ -246,6 +246,27 @@ class ReplayBuffer:
                 a = (old - n) % self.rows
                 self.priorities.retire(slice(a, a + n))
 
+    def end_episodes(self) -> None:
+        """End every stream's running episode at the newest step written, as a time-limit truncation (``done`` and
+        ``truncated``, not ``terminated``: its final observation goes to the finals table and is bootstrapped from).
+        For a training loop that swaps its env (a curriculum stage): the next step written starts new episodes and is
+        never taken for the next observation of the old ones. Streams whose newest step ended already are left alone."""
+        if self._rows is None or self.written == 0:
+            return
+        n = self.streams
+        p = (self.written - n) % self.rows  # the newest step's rows (a whole step never wraps: rows is a multiple of n)
+        q = (p + n) % self.rows  # its next observations, written with it
+        idx = (~self._rows["done"][p:p + n].reshape(n)).nonzero().squeeze(-1)
+        if idx.numel() == 0:
+            return
+        slots = (self.finals_written + torch.arange(idx.numel())) % self.rows
+        for dst, src in zip(self._fin, self._obs):
+            dst[slots] = src[q + idx]
+        self._final[p + idx] = slots.to(torch.int32)
+        self.finals_written += idx.numel()
+        for flag in ("done", "truncated"):
+            self._rows[flag][p + idx] = True
+
     # ---- reading ----------------------------------------------------------------------------
     def _next_obs(self, rows: torch.Tensor, done: torch.Tensor) -> list[torch.Tensor]:
         """Observations after the transitions in ``rows`` (``done``: their episode ended there)."""

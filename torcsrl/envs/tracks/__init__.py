@@ -14,8 +14,8 @@ Public API::
 Tracks are data files in ``torcsrl/envs/tracks/data`` (segment lists, or sidecars naming a
 centreline point file); sets are in ``data/sets.yaml``. ``gen-<seed>`` names a procedural track
 with the generator's default knobs and ``proc-<seed>`` a procedural circuit
-(:func:`generate_circuit`, difficulty drawn from the seed), so config can mix bundled and
-generated tracks.
+(:func:`generate_circuit`, difficulty drawn from the seed; ``proc-<seed>@<difficulty>`` with that
+difficulty in [0, 1]), so config can mix bundled and generated tracks.
 """
 
 from __future__ import annotations
@@ -46,19 +46,37 @@ def names() -> list[str]:
 
 
 def _generated(name: str) -> bool:
-    """``gen-<seed>`` or ``proc-<seed>``: a procedural track named by its seed."""
-    for prefix in ("gen-", "proc-"):
-        if name.startswith(prefix) and name[len(prefix):].isdigit():
-            return True
-    return False
+    """``gen-<seed>``, ``proc-<seed>`` or ``proc-<seed>@<difficulty>``: a procedural track named by its seed."""
+    if name.startswith("gen-") and name[4:].isdigit():
+        return True
+    return _proc_name(name) is not None
+
+
+def _proc_name(name: str) -> tuple[int, float | None] | None:
+    """(seed, difficulty) of ``proc-<seed>`` (difficulty None: drawn from the seed) or ``proc-<seed>@<difficulty>``
+    (a number in [0, 1]); None for any other name."""
+    if not name.startswith("proc-"):
+        return None
+    seed, _, diff = name[5:].partition("@")
+    if not seed.isdigit():
+        return None
+    if not _:
+        return int(seed), None
+    try:
+        d = float(diff)
+    except ValueError:
+        return None
+    return (int(seed), d) if 0.0 <= d <= 1.0 else None
 
 
 @lru_cache(maxsize=None)
 def _load_cached(name: str) -> Track:
     if name.startswith("gen-"):
         return generate(int(name[4:]))
-    if name.startswith("proc-"):
-        return generate_circuit(int(name[5:]))
+    proc = _proc_name(name)
+    if proc is not None:
+        seed, difficulty = proc
+        return generate_circuit(seed, difficulty, name=name)
     return load_file(data_dir() / f"{name}.yaml")
 
 
@@ -73,8 +91,8 @@ def load(name: str, surface: str | None = None) -> Track:
     if _generated(name) or name in names():
         track = copy.copy(_load_cached(name))
     else:
-        raise ValueError(f"unknown track {name!r}; available: {', '.join(names())} (or gen-<seed> / proc-<seed> "
-                         f"for a generated one)")
+        raise ValueError(f"unknown track {name!r}; available: {', '.join(names())} (or gen-<seed> / proc-<seed> / "
+                         f"proc-<seed>@<difficulty 0..1> for a generated one)")
     return track.with_surface(surface) if surface else track
 
 

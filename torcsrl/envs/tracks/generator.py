@@ -179,11 +179,16 @@ def _lerp(a: float, b: float, t: float) -> float:
     return a + (b - a) * t
 
 
+def seed_difficulty(seed: int) -> float:
+    """The difficulty in [0, 1) that ``generate_circuit(seed)`` draws from its seed when none is given."""
+    return float(np.random.default_rng([int(seed), _PROC_TAG, 0]).uniform(0.0, 1.0))
+
+
 def _circuit_plan(seed: int, knobs: dict) -> dict:
     """The circuit's numbers: every value is drawn from the seed in a fixed order, then a given knob
     replaces its own draw (so giving one knob leaves the other draws as they were)."""
     rng = np.random.default_rng([int(seed), _PROC_TAG, 0])
-    d = float(rng.uniform(0.0, 1.0))
+    d = float(rng.uniform(0.0, 1.0))  # = seed_difficulty(seed)
     if knobs["difficulty"] is not None:
         d = float(knobs["difficulty"])
     u = rng.uniform(0.0, 1.0, 8)

@@ -2,7 +2,10 @@
 
 A race env built with ``procedural={"seeds": [lo, hi], "pool": N, "share": p}`` adds ``N`` generated
 tracks to its track list (names ``proc-<seed>``, :func:`torcsrl.envs.tracks.generate_circuit`; or
-``gen-<seed>`` with ``generator: gen``). Their seeds are drawn without replacement from
+``gen-<seed>`` with ``generator: gen``). With ``difficulty: [lo, hi]`` (``proc`` only) each pool
+circuit's difficulty is ``lo + (hi - lo) u`` (to 3 decimals), ``u`` the difficulty its seed would draw,
+so a curriculum that raises ``hi`` makes the same seeds' circuits tighter; the tracks are then named
+``proc-<seed>@<difficulty>``. Their seeds are drawn without replacement from
 ``[lo, hi)`` by a stream seeded with the env's own seed, so every env (worker, validation env) of a
 run gets its own tracks and the same config and seed always get the same ones. Each episode then
 drives a pool track with probability ``share`` and one of the named tracks otherwise.
@@ -55,12 +58,16 @@ class ProceduralSpec:
         pool: tracks in the pool [-].
         share: probability that an episode drives a pool track rather than a named one [-].
         generator: ``proc`` or ``gen`` (:data:`GENERATORS`).
+        difficulty: ``(lo, hi)`` within [0, 1] that the pool circuits' difficulties are scaled into
+            (0: wide, gentle, few features ... 1: tight hairpins, narrow; ``generate_circuit``); None:
+            each seed's own draw.
     """
 
     seeds: tuple[int, int] = TRAIN_SEEDS
     pool: int = 200
     share: float = 0.8
     generator: str = "proc"
+    difficulty: tuple[float, float] | None = None
 
     @classmethod
     def from_config(cls, cfg: Mapping | None) -> ProceduralSpec | None:
@@ -71,9 +78,9 @@ class ProceduralSpec:
         d = dict(cfg)
         if not d:
             return None
-        unknown = sorted(set(d) - {"seeds", "pool", "share", "generator"})
+        unknown = sorted(set(d) - {"seeds", "pool", "share", "generator", "difficulty"})
         if unknown:
-            raise ValueError(f"procedural: unknown keys {unknown}; allowed: seeds, pool, share, generator")
+            raise ValueError(f"procedural: unknown keys {unknown}; allowed: seeds, pool, share, generator, difficulty")
         seeds = d.get("seeds", TRAIN_SEEDS)
         try:
             lo, hi = (int(v) for v in seeds)
@@ -96,7 +103,7 @@ class ProceduralSpec:
         gen = str(d.get("generator", cls.generator))
         if gen not in GENERATORS:
             raise ValueError(f"procedural.generator={gen!r} is not known; allowed: {', '.join(GENERATORS)}")
-        return cls((lo, hi), int(pool), share, gen)
+        return cls((lo, hi), int(pool), share, gen, _difficulty(d.get("difficulty"), gen))
 
     def track_seeds(self, env_seed: int | None) -> list[int]:
         """The pool's track seeds for an env seeded with ``env_seed`` (distinct, deterministic)."""
@@ -112,5 +119,23 @@ class ProceduralSpec:
         return out
 
     def names(self, env_seed: int | None) -> list[str]:
-        """Track names of the pool for an env seeded with ``env_seed``."""
-        return [f"{GENERATORS[self.generator]}{s}" for s in self.track_seeds(env_seed)]
+        """Track names of the pool for an env seeded with ``env_seed`` (``proc-<seed>@<difficulty>`` with a difficulty range)."""
+        if self.difficulty is None:
+            return [f"{GENERATORS[self.generator]}{s}" for s in self.track_seeds(env_seed)]
+        from torcsrl.envs.tracks.generator import seed_difficulty
+
+        lo, hi = self.difficulty
+        return [f"proc-{s}@{lo + (hi - lo) * seed_difficulty(s):.3f}" for s in self.track_seeds(env_seed)]
+
+
+def _difficulty(value, generator: str) -> tuple[float, float] | None:
+    """``procedural.difficulty``: null, a number or [lo, hi] within [0, 1] (generator proc only)."""
+    if value is None:
+        return None
+    nums = list(value) if isinstance(value, (list, tuple)) else [value, value]
+    ok = len(nums) == 2 and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in nums)
+    if not ok or not 0.0 <= nums[0] <= nums[1] <= 1.0:
+        raise ValueError(f"procedural.difficulty must be a number or [lo, hi] with 0 <= lo <= hi <= 1, got {value!r}")
+    if generator != "proc":
+        raise ValueError(f"procedural.difficulty scales generate_circuit's difficulty: it needs generator: proc, not {generator!r}")
+    return float(nums[0]), float(nums[1])
