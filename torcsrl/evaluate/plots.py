@@ -95,7 +95,7 @@ def plot_race(track, trace: Mapping[str, object], path: str | Path, title: str =
     colors = plt.get_cmap("tab10")
     if xy.ndim == 3 and len(xy):
         for c in range(xy.shape[1]):
-            lw, z = (2.4, 3) if c == learner else (1.2, 2)
+            lw, z = (3.2, 2) if c == learner else (1.2, 3)  # opponents on top: they share the learner's line
             label = "learner" if c == learner else f"opponent {c}"
             ax.plot(xy[:, c, 0], xy[:, c, 1], color=colors(c % 10), lw=lw, zorder=z, label=label, alpha=0.9)
             ax.plot(xy[0, c, 0], xy[0, c, 1], "o", color=colors(c % 10), ms=5, zorder=4)
