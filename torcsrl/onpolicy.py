@@ -28,8 +28,8 @@ from tensordict.nn import TensorDictModule
 from torcsrl import agents
 from torcsrl.train import (
     Counters,
+    TrainWindow,
     _check_same_env,
-    _lap_keys,
     _set_sim_state,
     _sim_state,
     expected_meta,
@@ -81,10 +81,9 @@ def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     encoders = [m.encoder for m in (actor, critic) if m.encoder.norm is not None]
     last: dict[str, Any] = {}
     eval_metrics: dict[str, float] = {}
-    t_start, cpu_start = time.perf_counter(), time.process_time()
+    window = TrainWindow(counters)
+    t_start = window.t_start
     max_wall_s = 60.0 * float(cfg.max_minutes) if cfg.get("max_minutes") else 0.0
-    t_win, f_win, u_win = t_start, counters.frames, counters.updates
-    ep_rewards, ep_laps = [], []
     try:
         batches = iter(collector)
         while counters.frames < total:
@@ -94,13 +93,7 @@ def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
                 break
             # collect a batch of rollouts: [cars, rollout_steps] (one car: [rollout_steps])
             data = next(batches)
-            done = data["next", "done"].squeeze(-1)
-            if done.any():
-                ep_rewards += data["next", "episode_reward"].squeeze(-1)[done].tolist()
-                lap_key, _ = _lap_keys(data["next"])
-                if lap_key is not None:
-                    ep_laps += data["next", lap_key].squeeze(-1)[done].tolist()
-                counters.episodes += int(done.sum())
+            window.book(data, counters)
             counters.frames += data.numel()
 
             # advantages (GAE) and value targets with the networks that collected the batch
@@ -118,21 +111,7 @@ def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
 
             # log
             if counters.frames >= counters.next_log:
-                now = time.perf_counter()
-                sps = (counters.frames - f_win) / max(now - t_win, 1e-9)
-                metrics = {k: float(v) for k, v in last.items()}
-                metrics.update({"train/frames": counters.frames, "train/episodes": counters.episodes,
-                                "time/steps_per_s": sps, "time/updates_per_s": (counters.updates - u_win) / max(now - t_win, 1e-9),
-                                "time/elapsed_s": now - t_start, "time/cpu_s": time.process_time() - cpu_start})
-                if ep_rewards:
-                    metrics["train/episode_reward"] = sum(ep_rewards) / len(ep_rewards)
-                    if ep_laps:
-                        metrics["train/laps"] = sum(ep_laps) / len(ep_laps)
-                    ep_rewards, ep_laps = [], []
-                log_metrics(loggers, {k: v for k, v in metrics.items() if not k.startswith("time/")}, counters.frames)
-                log_metrics(loggers, {k: v for k, v in metrics.items() if k.startswith("time/")}, counters.frames)
-                progress.update(counters.frames, sps)
-                t_win, f_win, u_win = now, counters.frames, counters.updates
+                window.log(loggers, progress, counters, last)
                 while counters.next_log <= counters.frames:
                     counters.next_log += int(cfg.logger.every_frames)
 
@@ -150,7 +129,7 @@ def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
                 while counters.next_ckpt <= counters.frames:
                     counters.next_ckpt += every
                 _save(counters=counters, **state)
-        progress.update(counters.frames, (counters.frames - f_win) / max(time.perf_counter() - t_win, 1e-9), force=True)
+        progress.update(counters.frames, window.steps_per_s(counters), force=True)
     finally:
         progress.close()
         for e in (env, *eval_envs.values()):

@@ -397,6 +397,49 @@ def enter_stage(cfg: DictConfig, frames: int, env: EnvBase, collector, eval_envs
 # ---------------------------------------------------------------------------------------
 # validation
 # ---------------------------------------------------------------------------------------
+class TrainWindow:
+    """The training logs' bookkeeping shared by the off-policy loop and PPO's (:mod:`torcsrl.onpolicy`): episodes
+    finished in collected batches, and one log line's window (steps/s, updates/s since the last line)."""
+
+    def __init__(self, counters) -> None:
+        self.t_start, self.cpu_start = time.perf_counter(), time.process_time()
+        self.t, self.frames, self.updates = self.t_start, counters.frames, counters.updates
+        self.rewards: list[float] = []
+        self.laps: list[float] = []
+
+    def book(self, data, counters) -> None:
+        """Count the episodes that end in ``data`` (a collected batch) and keep their returns and laps."""
+        done = data["next", "done"].squeeze(-1)
+        if done.any():
+            self.rewards += data["next", "episode_reward"].squeeze(-1)[done].tolist()
+            lap_key, _ = _lap_keys(data["next"])
+            if lap_key is not None:
+                self.laps += data["next", lap_key].squeeze(-1)[done].tolist()
+            counters.episodes += int(done.sum())
+
+    def steps_per_s(self, counters) -> float:
+        return (counters.frames - self.frames) / max(time.perf_counter() - self.t, 1e-9)
+
+    def log(self, loggers, progress, counters, last: dict, **extra) -> None:
+        """Log ``last`` (the latest update's losses), the counters, ``extra``, the window's rates and the mean return
+        and laps of the episodes booked since the last line; then start a new window."""
+        now = time.perf_counter()
+        sps = self.steps_per_s(counters)
+        metrics = {k: float(v) for k, v in last.items()}
+        metrics.update({"train/frames": counters.frames, "train/episodes": counters.episodes, **extra,
+                        "time/steps_per_s": sps, "time/updates_per_s": (counters.updates - self.updates) / max(now - self.t, 1e-9),
+                        "time/elapsed_s": now - self.t_start, "time/cpu_s": time.process_time() - self.cpu_start})
+        if self.rewards:
+            metrics["train/episode_reward"] = sum(self.rewards) / len(self.rewards)
+            if self.laps:
+                metrics["train/laps"] = sum(self.laps) / len(self.laps)
+            self.rewards, self.laps = [], []
+        log_metrics(loggers, {k: v for k, v in metrics.items() if not k.startswith("time/")}, counters.frames)
+        log_metrics(loggers, {k: v for k, v in metrics.items() if k.startswith("time/")}, counters.frames)
+        progress.update(counters.frames, sps)
+        self.t, self.frames, self.updates = now, counters.frames, counters.updates
+
+
 def _lap_keys(td: TensorDictBase) -> tuple:
     """(completed-laps key, last-lap-time key): :func:`torcsrl.evaluate.protocol.lap_keys`."""
     from torcsrl.evaluate.protocol import lap_keys
@@ -623,10 +666,9 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         counters.pretrained = True
     prioritized = bool(cfg.buffer.prioritized)
     eval_metrics: dict[str, float] = {}
-    t_start, cpu_start = time.perf_counter(), time.process_time()
+    window = TrainWindow(counters)
+    t_start = window.t_start
     max_wall_s = 60.0 * float(cfg.max_minutes) if cfg.get("max_minutes") else 0.0  # the loop's budget (demos and pre-training come before)
-    t_win, f_win, u_win = t_start, counters.frames, counters.updates
-    ep_rewards, ep_laps = [], []
     try:
         batches = iter(collector)
         while counters.frames < total:
@@ -636,13 +678,7 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
                 break
             # collect -> extend
             data = next(batches)
-            done = data["next", "done"].squeeze(-1)
-            if done.any():
-                ep_rewards += data["next", "episode_reward"].squeeze(-1)[done].tolist()
-                lap_key, _ = _lap_keys(data["next"])
-                if lap_key is not None:
-                    ep_laps += data["next", lap_key].squeeze(-1)[done].tolist()
-                counters.episodes += int(done.sum())
+            window.book(data, counters)
             buffer.extend(data)
             counters.frames += data.numel()
 
@@ -667,23 +703,8 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
 
             # log
             if counters.frames >= counters.next_log:
-                now = time.perf_counter()
-                sps = (counters.frames - f_win) / max(now - t_win, 1e-9)
-                metrics = {k: float(v) for k, v in last.items()}
-                metrics.update({"train/frames": counters.frames, "train/episodes": counters.episodes, "train/buffer_size": len(buffer),
-                                "time/steps_per_s": sps, "time/updates_per_s": (counters.updates - u_win) / max(now - t_win, 1e-9),
-                                "time/elapsed_s": now - t_start, "time/cpu_s": time.process_time() - cpu_start})
-                if curriculum.active:
-                    metrics["train/stage"] = curriculum.stage
-                if ep_rewards:
-                    metrics["train/episode_reward"] = sum(ep_rewards) / len(ep_rewards)
-                    if ep_laps:
-                        metrics["train/laps"] = sum(ep_laps) / len(ep_laps)
-                    ep_rewards, ep_laps = [], []
-                log_metrics(loggers, {k: v for k, v in metrics.items() if not k.startswith("time/")}, counters.frames)
-                log_metrics(loggers, {k: v for k, v in metrics.items() if k.startswith("time/")}, counters.frames)
-                progress.update(counters.frames, sps)
-                t_win, f_win, u_win = now, counters.frames, counters.updates
+                window.log(loggers, progress, counters, last, **{"train/buffer_size": len(buffer)},
+                           **({"train/stage": curriculum.stage} if curriculum.active else {}))
                 while counters.next_log <= counters.frames:
                     counters.next_log += int(cfg.logger.every_frames)
 
@@ -707,7 +728,7 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
                 while counters.next_ckpt <= counters.frames:  # advanced first: a resumed run does not save again at once
                     counters.next_ckpt += every
                 _save(cfg, ckpt_dir, meta, counters, loss, optim, policy, collector, env, eval_envs, buffer, threads, curriculum)
-        progress.update(counters.frames, (counters.frames - f_win) / max(time.perf_counter() - t_win, 1e-9), force=True)
+        progress.update(counters.frames, window.steps_per_s(counters), force=True)
         if cfg.buffer.save_at_end:
             save_dir_atomically(run_dir / "buffer_final", lambda d: buffer.dumps(str(d)))
     finally:

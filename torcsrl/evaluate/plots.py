@@ -42,10 +42,17 @@ def plot_trajectory(track, trace: Mapping[str, np.ndarray], path: str | Path, ti
         if trace.get("terminated"):
             ax.plot(xy[-1, 0], xy[-1, 1], "x", color="red", ms=14, mew=3, label="terminated")
             ax.legend(loc="upper right")
+    return _save_top_down(fig, ax, path, title or track.name)
+
+
+def _save_top_down(fig, ax, path: str | Path, title: str) -> Path:
+    """Finish a top-down plot (equal axes in metres, the title) and write it as a PNG."""
+    import matplotlib.pyplot as plt
+
     ax.set_aspect("equal")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
-    ax.set_title(title or track.name, fontsize=10)
+    ax.set_title(title, fontsize=10)
     fig.tight_layout()
     path = Path(path)
     fig.savefig(path, dpi=110, bbox_inches="tight")
@@ -104,12 +111,4 @@ def plot_race(track, trace: Mapping[str, object], path: str | Path, title: str =
             pts = np.array([xy[min(t, len(xy) - 1), c] for t, c in hits])
             ax.plot(pts[:, 0], pts[:, 1], "x", color="k", ms=9, mew=2.2, zorder=5, label=f"collision ({len(hits)} car contacts)")
         ax.legend(loc="upper right", fontsize=8)
-    ax.set_aspect("equal")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.set_title(title or track.name, fontsize=10)
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110, bbox_inches="tight")
-    plt.close(fig)
-    return path
+    return _save_top_down(fig, ax, path, title or track.name)
