@@ -325,18 +325,23 @@ class RaceCore:
             self.s[i] = s0
             self.chord[i] = int(t._locate(s0)[0])
         self.fleet.reset(idx, xy + self.car_origins()[idx], yaw, 0.0)
+        self._clear_books(idx, lap_timed=self.start == "grid")
+        self._observe()
+
+    def _clear_books(self, idx: np.ndarray, lap_timed: bool) -> None:
+        """Zero the lap books, counters, termination and reward terms of the cars ``idx`` just placed, and locate
+        them; ``lap_timed``: whether their first lap counts from now (a grid start) or from the first crossing."""
         for name in ("dist_raced", "best_dist", "best_dist_time", "time", "lap_start_time", "last_lap_time",
                      "best_lap_time", "offtrack_time"):
             getattr(self, name)[idx] = 0.0
         self.lap[idx] = 0
         self.crossings[idx] = 0
         self.steps[idx] = 0
-        self.lap_timed[idx] = self.start == "grid"
+        self.lap_timed[idx] = lap_timed
         self.finished[idx] = False
         self.reason[idx] = 0
         self.terms[:, idx] = 0.0
         self._locate(idx_reset=idx)
-        self._observe()
 
     def _draw_tracks(self, k: int) -> tuple[np.ndarray, list]:
         rng = self.rng
@@ -374,17 +379,7 @@ class RaceCore:
             tr.reset_books(g, back)
         idx = np.asarray(cars, dtype=np.int64)
         self.fleet.reset(idx, np.asarray(xy) + self.car_origins()[idx], np.asarray(yaw), np.asarray(speed))
-        for name in ("dist_raced", "best_dist", "best_dist_time", "time", "lap_start_time", "last_lap_time",
-                     "best_lap_time", "offtrack_time"):
-            getattr(self, name)[idx] = 0.0
-        self.lap[idx] = 0
-        self.crossings[idx] = 0
-        self.steps[idx] = 0
-        self.lap_timed[idx] = False  # the first lap is timed from the first crossing of the line
-        self.finished[idx] = False
-        self.reason[idx] = 0
-        self.terms[:, idx] = 0.0
-        self._locate(idx_reset=idx)
+        self._clear_books(idx, lap_timed=False)  # the first lap is timed from the first crossing of the line
         tr._d_prev = self.d.copy()
         self._observe()
 
