@@ -29,12 +29,12 @@ from torcsrl.train import train  # noqa: E402
 
 
 def run_seed(env: str, algo: str, seed: int, budget: int, chunk: int, overrides: list[str], out: Path,
-             eval_max_steps: int = 10_000) -> dict:
+             eval_max_steps: int = 10_000, max_wall_s: float | None = None) -> dict:
     run_dir = out / f"{algo}_{env}_seed{seed}"
     found = {"first_clean_lap": None, "clean_10_laps": None}
     wall = 0.0
     frames = 0
-    while frames < budget and found["clean_10_laps"] is None:
+    while frames < budget and found["clean_10_laps"] is None and (max_wall_s is None or wall < max_wall_s):
         target = min(budget, frames + chunk)
         with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
             cfg = compose("train", overrides=[
@@ -86,16 +86,20 @@ def main() -> None:
     ap.add_argument("--chunk", type=int, default=10_000, help="env steps between milestone checks")
     ap.add_argument("--eval-max-steps", type=int, default=10_000,
                     help="step cap of the 10-lap validation run (10 laps of the oval at 10 Hz take ~5,000 steps)")
+    ap.add_argument("--max-minutes", type=float, default=None,
+                    help="stop a seed once its training wall-clock passes this [min] (the goals' 30-minute budgets)")
     ap.add_argument("--out", default=None, help="folder for the runs (default: a temporary folder)")
     ap.add_argument("overrides", nargs="*", help="extra Hydra overrides (after --)")
     a = ap.parse_args()
     out = Path(a.out or tempfile.mkdtemp(prefix="torcsrl_learning_"))
-    rows = [run_seed(a.env, a.algo, s, a.budget, a.chunk, a.overrides, out, a.eval_max_steps) for s in a.seeds]
+    rows = [run_seed(a.env, a.algo, s, a.budget, a.chunk, a.overrides, out, a.eval_max_steps,
+                     None if a.max_minutes is None else 60.0 * a.max_minutes) for s in a.seeds]
 
     def fmt(m):
         return "not reached" if m is None else f"{m[0]:>9} steps {m[1]:8.1f} s"
 
-    print(f"\n{a.algo} on env={a.env}, budget {a.budget} steps, checked every {a.chunk} steps; runs in {out}")
+    cap = "" if a.max_minutes is None else f" or {a.max_minutes:g} min of training"
+    print(f"\n{a.algo} on env={a.env}, budget {a.budget} steps{cap}, checked every {a.chunk} steps; runs in {out}")
     print(f"{'seed':>4} | {'first clean lap':>26} | {'clean 10-lap run':>26}")
     for r in rows:
         print(f"{r['seed']:>4} | {fmt(r['first_clean_lap']):>26} | {fmt(r['clean_10_laps']):>26}")
