@@ -63,6 +63,10 @@ def test_both_configs_compose_and_the_flags_are_aliases():
     ("report", ["degradations=[rangefinder.smoke]"], "unknown degradation"),
     ("report", ["policies=[nowhere.pt]"], "neither a checkpoint file that exists"),
     ("report", ["episodes=two"], "episodes must be int"),
+    ("report", ["ray=5"], "ray must be str/null, got 5"),
+    ("report", ["ray=nowhere"], "'nowhere' is not a Ray address; allowed: null (no Ray), local"),
+    ("report", ["--ray", "head:port"], "'head:port' is not a Ray address"),
+    ("report", ["+ray_address=auto"], "unknown key(s) ['ray_address']"),
 ])
 def test_bad_config_is_one_line_before_any_episode(tmp_path, capsys, app, argv, msg):
     main = evaluate_main if app == "evaluate" else report_main

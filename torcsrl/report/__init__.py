@@ -17,7 +17,8 @@ clean cells give R_random for the normalised return. A degradation that touches 
 policy's observation keys cannot change its driving: that policy's clean episodes stand in for
 those cells (flagged ``reused_clean``).
 
-Cells run in parallel processes (``--workers``) and each is cached as one JSON file in
+Cells run in parallel processes (``--workers``), or as Ray tasks on a local Ray instance or a
+cluster (``ray=local|auto|host:port``, :mod:`torcsrl.utils.ray_session`), and each is cached as one JSON file in
 ``<out>/cells/`` (or ``--cache``), named by a hash of the policy's bytes, the cell and the
 config: an interrupted report re-run with the same folder skips the cells already done, and a
 changed policy file or config (laps, episodes, seed, step cap, env settings) recomputes them.

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import sys
 import time
 from collections.abc import Sequence
@@ -22,12 +21,13 @@ FLAGS = {"--policy": ("policies", "many"), "--policies": ("policies", "many"), "
          "--severities": ("severities", "many"), "--episodes": ("episodes", "one"), "--laps": ("laps", "one"),
          "--seed": ("seed", "one"), "--max-steps": ("max_steps", "one"), "--random-max-steps": ("random_max_steps", "one"),
          "--workers": ("workers", "one"), "--n-boot": ("n_boot", "one"), "--batch-cars": ("batch_cars", "one"),
-         "--out": ("out", "one"), "--cache": ("cache", "one"), "--from-dir": ("from_dir", "one")}
+         "--out": ("out", "one"), "--cache": ("cache", "one"), "--from-dir": ("from_dir", "one"), "--ray": ("ray", "one")}
 _OPT_INT = (int, type(None))
 TYPES = {"policies": (list, str, type(None)), "reference": (str, type(None)), "tracks": (list, str), "surfaces": (list, str, type(None)),
          "degradations": (list, str), "severities": (list, int), "episodes": (int,), "laps": (int,), "seed": (int,),
          "max_steps": _OPT_INT, "random_max_steps": (int,), "env_kwargs": (dict,), "workers": _OPT_INT, "n_boot": (int,),
-         "batch_cars": (int,), "out": (str, type(None)), "cache": (str, type(None)), "from_dir": (str, type(None))}
+         "batch_cars": (int,), "ray": (str, type(None)), "out": (str, type(None)), "cache": (str, type(None)),
+         "from_dir": (str, type(None))}
 
 
 def _as_list(v: Any) -> list | None:
@@ -46,8 +46,7 @@ def run_config(cfg: Any, verbose: bool = True) -> tuple[dict[str, Any], Path]:
     bad = [s for s in sev if isinstance(s, bool) or not isinstance(s, int)]
     if bad:
         raise EvalError(f"severities must be integers in 0..5, got {bad}")
-    workers = c["workers"] if c["workers"] is not None else max(1, min(4, os.cpu_count() or 1))
-    check_counts(n_boot=c["n_boot"], episodes=c["episodes"], laps=c["laps"], workers=workers, max_steps=c["max_steps"],
+    check_counts(n_boot=c["n_boot"], episodes=c["episodes"], laps=c["laps"], workers=c["workers"], max_steps=c["max_steps"],
                  random_max_steps=c["random_max_steps"], batch_cars=c["batch_cars"])
     out = Path(c["out"]) if c["out"] else Path("outputs") / "report" / time.strftime("%Y-%m-%d_%H-%M-%S")
     degradations = _as_list(c["degradations"])
@@ -64,8 +63,8 @@ def run_config(cfg: Any, verbose: bool = True) -> tuple[dict[str, Any], Path]:
     rcfg = ReportConfig(policies=policies, reference=c["reference"], tracks=_as_list(c["tracks"]),
                         surfaces=_as_list(c["surfaces"]) or [None], degradations=expand_degradations(degradations),
                         severities=sev, episodes=c["episodes"], laps=c["laps"], seed=c["seed"], max_steps=c["max_steps"],
-                        random_max_steps=c["random_max_steps"], env_kwargs=dict(c["env_kwargs"]), workers=workers,
-                        n_boot=c["n_boot"], batch_cars=c["batch_cars"])
+                        random_max_steps=c["random_max_steps"], env_kwargs=dict(c["env_kwargs"]), workers=c["workers"],
+                        n_boot=c["n_boot"], batch_cars=c["batch_cars"], ray=c["ray"])
     cache = c["cache"] or (None if c["out"] else Path("outputs") / "report" / "cells")
     return run_report(rcfg, out, cache, verbose=verbose), out
 
@@ -97,8 +96,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"torcsrl.report: error: {os_error_line(err)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as err:
-        print(f"torcsrl.report: error: stopped by {getattr(err, 'name', 'SIGINT')}; worker processes stopped; finished cells "
-              "are kept in the cache and a re-run skips them", file=sys.stderr)
+        print(f"torcsrl.report: error: stopped by {getattr(err, 'name', 'SIGINT')}; worker processes (or Ray tasks) stopped; "
+              "finished cells are kept in the cache and a re-run skips them", file=sys.stderr)
         return exit_code(err)
     print(res["summary_line"])
     print(f"report: {out / 'REPORT.md'}  ({out / 'report.html'})")

@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import functools
 import hashlib
 import json
 import math
 import multiprocessing as mp
+import os
+import socket
 import sys
 import time
 from collections.abc import Mapping, Sequence
@@ -22,6 +25,7 @@ from torcsrl.evaluate import (PROTOCOL_VERSION, Degradation, EvalError, check_po
                               write_json)
 from torcsrl.policies import BUILTIN_POLICIES, REFERENCE_POLICY, Policy, load_policy
 from torcsrl.utils.faults import OutputError, ignore_signals_in_worker, stop_pool, writable_folder
+from torcsrl.utils.ray_session import RayError, check_address, ray_session
 
 __all__ = [  # this module's own names (the package re-exports them with results' and app's)
     "DEFAULT_DEGRADATIONS",
@@ -68,10 +72,14 @@ class ReportConfig:
     ``weather.<preset>``; ``severities``: subset of 0..5 (0 is always run); ``episodes`` per
     cell; ``laps`` per episode; ``max_steps``: step cap (default: laps at 10 m/s);
     ``random_max_steps``: cap for the random baseline's episodes; ``env_kwargs``: more
-    make_env keywords; ``workers``: processes; ``n_boot``: bootstrap resamples; ``batch_cars``: up to
+    make_env keywords; ``workers``: processes (None: min(4, CPUs), or on a Ray cluster its CPUs);
+    ``n_boot``: bootstrap resamples; ``batch_cars``: up to
     this many episodes of the cells that share a policy and a track drive as cars of one env
     (:func:`torcsrl.evaluate.batched.run_batch`, the same episodes as one car at a time; 1 = one car
-    at a time; policies that cannot drive a batch always drive one car at a time)."""
+    at a time; policies that cannot drive a batch always drive one car at a time); ``ray``: None (cells
+    run in this process or in ``workers`` processes), or the Ray address the cells run on as Ray tasks
+    (``local``: a Ray instance of ``workers`` CPUs started here; ``auto``; ``host:port``; ``ray://host:port``:
+    :mod:`torcsrl.utils.ray_session`) — the same cells, cache and report either way."""
 
     policies: list[str] = field(default_factory=lambda: ["reference"])
     reference: str | None = None
@@ -85,9 +93,10 @@ class ReportConfig:
     max_steps: int | None = None
     random_max_steps: int = 1500
     env_kwargs: dict[str, Any] = field(default_factory=dict)
-    workers: int = 1
+    workers: int | None = 1
     n_boot: int = 1000
     batch_cars: int = 64
+    ray: str | None = None
 
     @classmethod
     def from_mapping(cls, d: Mapping[str, Any]) -> "ReportConfig":
@@ -173,10 +182,15 @@ def _cell_degradation(cell: Cell) -> Degradation | None:
     return Degradation(cell.corruption, cell.severity, cell.params) if cell.corruption != metrics.CLEAN else None
 
 
+def _worker_name() -> str:
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
 def _run_group_task(cells: Sequence[Cell], policy: Any, cfg: dict[str, Any], config_hash: str,
-                    paths: Sequence[str], max_cars: int | None = None) -> list[dict[str, Any]]:
+                    paths: Sequence[str | None], max_cars: int | None = None) -> list[dict[str, Any]]:
     """Run cells that share a policy, a track and a surface as cars of one env (in a worker), write each
-    cell's JSON atomically (the same record as :func:`_run_cell_task` would write); returns the records."""
+    cell's JSON atomically (the same record as :func:`_run_cell_task` would write; not where its path is
+    None); returns the records."""
     from torcsrl.evaluate.batched import run_batch
 
     t0 = time.perf_counter()
@@ -190,15 +204,16 @@ def _run_group_task(cells: Sequence[Cell], policy: Any, cfg: dict[str, Any], con
     records = []
     for cell, rows, path in zip(cells, out, paths):
         record = {"key": cell.key(config_hash), "config_hash": config_hash, "cell": asdict(cell), "config": cfg,
-                  "rows": rows, "wall_s": wall / len(cells), "batch_cells": len(cells),
+                  "rows": rows, "wall_s": wall / len(cells), "batch_cells": len(cells), "worker": _worker_name(),
                   "created": time.strftime("%Y-%m-%dT%H:%M:%S")}
-        write_json(record, path)
+        if path is not None:
+            write_json(record, path)
         records.append(record)
     return records
 
 
-def _run_cell_task(cell: Cell, policy: Any, cfg: dict[str, Any], config_hash: str, path: str) -> dict[str, Any]:
-    """Run one cell (in a worker) and write its JSON atomically; returns the record."""
+def _run_cell_task(cell: Cell, policy: Any, cfg: dict[str, Any], config_hash: str, path: str | None) -> dict[str, Any]:
+    """Run one cell (in a worker) and write its JSON atomically (not where ``path`` is None); returns the record."""
     t0 = time.perf_counter()
     pol = _policy(policy)
     pol.name = cell.policy
@@ -207,8 +222,10 @@ def _run_cell_task(cell: Cell, policy: Any, cfg: dict[str, Any], config_hash: st
     rows, _ = run_cell(pol, cell.track, None if cell.own_surface else cell.surface, deg, episodes=cfg["episodes"], laps=cfg["laps"], seed=cfg["seed"],
                        max_steps=max_steps, env_kwargs=cfg["env_kwargs"])
     record = {"key": cell.key(config_hash), "config_hash": config_hash, "cell": asdict(cell), "config": cfg,
-              "rows": rows, "wall_s": time.perf_counter() - t0, "created": time.strftime("%Y-%m-%dT%H:%M:%S")}
-    write_json(record, path)
+              "rows": rows, "wall_s": time.perf_counter() - t0, "worker": _worker_name(),
+              "created": time.strftime("%Y-%m-%dT%H:%M:%S")}
+    if path is not None:
+        write_json(record, path)
     return record
 
 
@@ -218,6 +235,73 @@ def _run_task(task: tuple) -> list[tuple[Cell, dict[str, Any]]]:
     if len(cells) == 1:
         return [(cells[0], _run_cell_task(cells[0], pspec, ccfg, config_hash, paths[0]))]
     return list(zip(cells, _run_group_task(cells, pspec, ccfg, config_hash, paths, max_cars)))
+
+
+def _ray_task(policy: Any, task: tuple) -> list[tuple[Cell, dict[str, Any]]]:
+    """One task of :func:`plan_tasks` as a Ray task (``policy`` apart: Ray resolves only top-level object
+    refs): one torch thread, as :func:`_worker_init` gives a pool worker; the worker's episode code must be
+    the driver's (a cluster node with other torcsrl sources would fill the cache with other episodes). It
+    writes no file: the driver writes the cache (the worker may be another machine)."""
+    import torch
+
+    torch.set_num_threads(1)
+    cells, _, ccfg, config_hash, paths, max_cars = task
+    if ccfg["code"] != code_hash():
+        raise EvalError(f"the Ray worker {_worker_name()} runs other torcsrl episode code (code hash {code_hash()}, this "
+                        f"machine's {ccfg['code']}); allowed: the same torcsrl version installed on every node")
+    return _run_task((cells, policy, ccfg, config_hash, paths, max_cars))
+
+
+def _run_on_ray(ray: Any, tasks: Sequence[tuple[list[Cell], Any, list[str]]], ccfg: dict[str, Any], config_hash: str,
+                batch_cars: int, done: Any) -> None:
+    """Run ``tasks`` as Ray tasks (one CPU each), hand each finished cell to ``done`` after writing its cache
+    file here, in the order they finish; on any exception (Ctrl-C, SIGTERM, a failed cell) cancel what is still
+    running or queued (finished cells are in the cache already) and re-raise — a failed cell's own exception,
+    not Ray's wrapper, so its one line reads as on the local path."""
+    remote = ray.remote(_ray_task).options(num_cpus=1)
+    shipped: dict[Any, Any] = {}
+
+    def ship(pspec: Any) -> Any:  # a built-in name loads anywhere; a checkpoint travels as the loaded policy
+        if isinstance(pspec, str) and pspec in BUILTIN_POLICIES:
+            return pspec
+        key = pspec if isinstance(pspec, str) else id(pspec)
+        if key not in shipped:
+            shipped[key] = ray.put(_policy(pspec))
+        return shipped[key]
+
+    pending: dict[Any, tuple[list[Cell], list[str]]] = {}
+    try:
+        for cells, pspec, paths in tasks:
+            ref = remote.remote(ship(pspec), (cells, None, ccfg, config_hash, [None] * len(cells), batch_cars))
+            pending[ref] = (cells, paths)
+        while pending:
+            ready, _ = ray.wait(list(pending), num_returns=1, timeout=1.0)  # a timeout: signal handlers run meanwhile
+            for ref in ready:
+                cells, paths = pending.pop(ref)
+                try:
+                    out = ray.get(ref)
+                except ray.exceptions.RayTaskError as err:
+                    cause = getattr(err, "cause", None)
+                    if isinstance(cause, Exception):
+                        raise cause from None
+                    raise EvalError(f"the Ray task of {cells[0].label()} failed: {_first_line(err)}") from None
+                except ray.exceptions.RayError as err:  # a worker or node died (after Ray's retries)
+                    raise EvalError(f"the Ray task of {cells[0].label()} failed: {_first_line(err)}") from None
+                for (cell, rec), path in zip(out, paths):
+                    write_json(rec, path)
+                    done(cell, rec)
+    except BaseException:
+        for ref in pending:
+            try:
+                ray.cancel(ref, force=True)
+            except Exception:  # noqa: BLE001 - finished meanwhile, or the cluster is gone: nothing left to stop
+                pass
+        raise
+
+
+def _first_line(err: BaseException) -> str:
+    text = str(err).strip()
+    return f"{type(err).__name__}: {text.splitlines()[0] if text else ''}"
 
 
 def plan_tasks(todo: Sequence[tuple[Cell, Any, Path]], batchable: set[str], episodes: int, batch_cars: int,
@@ -345,6 +429,11 @@ def prepare(cfg: ReportConfig) -> dict[str, Any]:
             "reference": ref_name, "tracks": tracks, "surfaces": surfaces, "degradations": [d.name for d in degs], "severities": sev}
 
 
+def default_workers() -> int:
+    """Worker processes when ``workers`` is None: min(4, this machine's CPUs)."""
+    return max(1, min(4, os.cpu_count() or 1))
+
+
 def check_counts(**counts: Any) -> None:
     """EvalError (one line) for a count below 1: ``n_boot`` (bootstrap resamples), ``episodes``, ``laps``, ``workers``,
     ``max_steps`` (None: the default), ``random_max_steps``."""
@@ -361,14 +450,13 @@ def run_report(cfg: ReportConfig, out_dir: str | Path, cache_dir: str | Path | N
     t0 = time.perf_counter()
     check_counts(n_boot=cfg.n_boot, episodes=cfg.episodes, laps=cfg.laps, workers=cfg.workers, max_steps=cfg.max_steps,
                  random_max_steps=cfg.random_max_steps, batch_cars=cfg.batch_cars)
+    try:
+        address = check_address(cfg.ray)
+    except RayError as err:
+        raise EvalError(str(err)) from None
     plan = prepare(cfg)
     out = Path(out_dir)
     cache = Path(cache_dir) if cache_dir is not None else out / "cells"
-    try:
-        writable_folder(out, "--out")
-        writable_folder(cache, "--cache")
-    except OutputError as err:
-        raise EvalError(str(err)) from None
     ccfg = cfg.cell_config()
     config_hash = _hash(ccfg)[:16]
     records: dict[Cell, dict[str, Any]] = {}
@@ -385,15 +473,8 @@ def run_report(cfg: ReportConfig, out_dir: str | Path, cache_dir: str | Path | N
             todo.append((cell, pspec, path))
     n_cached = len(records)
     log = (lambda msg: print(f"[torcsrl.report] {msg}", file=sys.stderr, flush=True)) if verbose else (lambda msg: None)
-    workers = max(1, min(int(cfg.workers), len(todo) or 1))
-    tasks = plan_tasks(todo, plan["batchable"], int(cfg.episodes), int(cfg.batch_cars), workers)
-    workers = max(1, min(workers, len(tasks)))
-    n_batched = sum(len(c) for c, _, _ in tasks if len(c) > 1)
-    log(f"{len(plan['cells'])} cells ({n_cached} cached, {len(todo)} to run, {len(plan['reused'])} reuse a clean run) "
-        f"in {len(tasks)} task(s) ({n_batched} cells batched as cars) on {workers} worker(s); report -> {out}; cache {cache}")
     done = 0
     ep_total = len(todo) * int(cfg.episodes)
-    t_run = time.perf_counter()
 
     def _done(cell: Cell, rec: dict[str, Any]) -> None:
         nonlocal done
@@ -407,21 +488,45 @@ def run_report(cfg: ReportConfig, out_dir: str | Path, cache_dir: str | Path | N
             f"return {np.mean([r['return'] for r in rows]):.0f}")
         records[cell] = rec
 
-    if workers == 1:
-        for cells, pspec, paths in tasks:
-            for cell, rec in _run_task((cells, pspec, ccfg, config_hash, paths, int(cfg.batch_cars))):
-                _done(cell, rec)
-    elif tasks:
-        ex = cf.ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"), initializer=_worker_init)
+    with contextlib.ExitStack() as stack:
+        ray = info = None
+        if address is not None and todo:  # connect first: an unreachable cluster fails before any folder or episode
+            try:
+                ray, info = stack.enter_context(ray_session(address, num_cpus=cfg.workers or default_workers()))
+            except RayError as err:
+                raise EvalError(str(err)) from None
         try:
-            futs = [ex.submit(_run_task, (cells, pspec, ccfg, config_hash, paths, int(cfg.batch_cars))) for cells, pspec, paths in tasks]
-            for fut in cf.as_completed(futs):
-                for cell, rec in fut.result():
+            writable_folder(out, "--out")
+            writable_folder(cache, "--cache")
+        except OutputError as err:
+            raise EvalError(str(err)) from None
+        slots = int(cfg.workers) if cfg.workers is not None else (info.cpus if info is not None else default_workers())
+        workers = max(1, min(slots, len(todo) or 1))
+        tasks = plan_tasks(todo, plan["batchable"], int(cfg.episodes), int(cfg.batch_cars), workers)
+        workers = max(1, min(workers, len(tasks)))
+        n_batched = sum(len(c) for c, _, _ in tasks if len(c) > 1)
+        where = f"on Ray ({info.describe()})" if info is not None else f"on {workers} worker(s)"
+        log(f"{len(plan['cells'])} cells ({n_cached} cached, {len(todo)} to run, {len(plan['reused'])} reuse a clean run) "
+            f"in {len(tasks)} task(s) ({n_batched} cells batched as cars) {where}; report -> {out}; cache {cache}")
+        t_run = time.perf_counter()
+        if ray is not None:
+            _run_on_ray(ray, tasks, ccfg, config_hash, int(cfg.batch_cars), _done)
+        elif workers == 1:
+            for cells, pspec, paths in tasks:
+                for cell, rec in _run_task((cells, pspec, ccfg, config_hash, paths, int(cfg.batch_cars))):
                     _done(cell, rec)
-        except BaseException:  # a signal (Interrupted) or a failed cell: finished cells are in the cache already
-            stop_pool(ex)
-            raise
-        ex.shutdown()
+        elif tasks:
+            ex = cf.ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"), initializer=_worker_init)
+            try:
+                futs = [ex.submit(_run_task, (cells, pspec, ccfg, config_hash, paths, int(cfg.batch_cars)))
+                        for cells, pspec, paths in tasks]
+                for fut in cf.as_completed(futs):
+                    for cell, rec in fut.result():
+                        _done(cell, rec)
+            except BaseException:  # a signal (Interrupted) or a failed cell: finished cells are in the cache already
+                stop_pool(ex)
+                raise
+            ex.shutdown()
     # clean runs standing in for degradations a policy does not observe
     for cell, clean in plan["reused"]:
         rows = [dict(r, corruption=cell.corruption, severity=cell.severity, reused_clean=True) for r in records[clean]["rows"]]
