@@ -40,8 +40,10 @@ import math
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModule, dispatch
+from torch import distributions as D
 from torch import nn
 from torch.distributions.utils import _sum_rightmost
 from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
@@ -91,6 +93,17 @@ class SquashedGaussian:
 
     def __init__(self, low: torch.Tensor, high: torch.Tensor):
         self.transform = TanhNormal(torch.zeros_like(low), torch.ones_like(low), low=low, high=high).transforms[0]
+        # TorchRL composes the affine map only when the bounds are not [-1, 1]; then t is SafeTanhTransform alone
+        self._unit = not isinstance(self.transform, D.ComposeTransform)
+        self._lim = 1.0 - torch.finfo(low.dtype).resolution
+
+    def squash(self, u: torch.Tensor) -> torch.Tensor:
+        """The action ``t(u)`` of pre-tanh values: ``tanh(u)`` clamped to ``+-(1 - 1e-6)`` (``SafeTanhTransform``), then
+        the affine map onto the bounds. Without gradients and with unit bounds: the same operations without the
+        transform's autograd node."""
+        if self._unit and not (u.requires_grad and torch.is_grad_enabled()):
+            return u.tanh().clamp_(-self._lim, self._lim)
+        return self.transform(u)
 
     def preimage(self, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(x, log_det) of actions ``[..., A]``: the pre-tanh value TorchRL's ``log_prob`` scores (``[..., A]``) and the
@@ -105,42 +118,50 @@ class SquashedGaussian:
         x, log_det = self.preimage(action)
         return log_det + normal_log_prob(loc, scale, x)
 
-    def rsample_and_log_prob(self, loc: torch.Tensor, scale: torch.Tensor, sample_shape: tuple[int, ...] = ()) -> tuple[torch.Tensor, torch.Tensor]:
+    def rsample_and_log_prob(self, loc: torch.Tensor, scale: torch.Tensor, sample_shape: tuple[int, ...] = (),
+                             sample: bool = True) -> tuple[torch.Tensor | None, torch.Tensor]:
         """(a, log pi(a)) of a reparameterised draw ``a = t(u)``, ``u = loc + eps * scale``, ``eps ~ N(0, 1)`` from torch's
         global generator, the log-density scored at ``u`` itself (``TanhNormal.rsample_and_log_prob``: what TorchRL's
         ``ProbabilisticActor`` stores while collecting, and its Monte-Carlo entropy). Shapes ``[*sample_shape, ..., A]``
-        and ``[*sample_shape, ...]``."""
+        and ``[*sample_shape, ...]``. ``sample=False``: the log-density only (``a`` is None where the bounds are
+        [-1, 1]: tanh's Jacobian needs only ``u``)."""
         u = loc + torch.empty((*sample_shape, *loc.shape), dtype=loc.dtype, device=loc.device).normal_() * scale
-        t = self.transform
-        a = t(u)
+        a = self.squash(u) if sample or not self._unit else None
         lp = normal_log_prob(loc, scale, u)  # before the Jacobian, as TorchRL: the same gradient accumulation order
-        return a, lp - _sum_rightmost(t.log_abs_det_jacobian(u, a), 1 - t.domain.event_dim)
+        if self._unit:  # TanhTransform.log_abs_det_jacobian, written out
+            ladj = 2.0 * (math.log(2.0) - u - F.softplus(-2.0 * u))
+        else:
+            ladj = self.transform.log_abs_det_jacobian(u, a)
+        return a, lp - _sum_rightmost(ladj, 1)
 
     def mode(self, loc: torch.Tensor) -> torch.Tensor:
         """The deterministic action ``t(loc)`` (``TanhNormal.deterministic_sample``)."""
-        return self.transform(loc)
+        return self.squash(loc)
 
     def entropy_estimate(self, loc: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
         """``-log pi`` of one reparameterised draw, scored at its pre-tanh value ``[...]``: TorchRL's Monte-Carlo entropy
         of a ``TanhNormal`` (``samples_mc_entropy=1``: ``-rsample_and_log_prob((1,))[1].mean(0)``)."""
-        return -self.rsample_and_log_prob(loc, scale, (1,))[1].mean(0)
+        return -self.rsample_and_log_prob(loc, scale, (1,), sample=False)[1].mean(0)
 
 
 @dataclass
 class PPOBatch:
     """A rollout (or a minibatch of it) as the tensors :class:`ClipPPOLoss` reads, flat ``[B, ...]``.
 
-    ``batch[idx]`` indexes every tensor (a permutation: a shuffled copy; a slice: views).
+    ``batch[idx]`` indexes every tensor once (a permutation: a shuffled copy; a slice: views).
 
     Attributes:
-        obs: the observations in the networks' order.
+        actor_in, critic_in: the actor's and the value network's inputs, prepared by their encoders
+            (:meth:`~torcsrl.nets.ObsEncoder.prepare`: vector observations scaled and standardised, images as they are,
+            the same image tensors in both).
         preimage: the stored actions' pre-tanh values ``[B, A]`` and ``log_det`` their change-of-variables term
             ``[B]`` (:meth:`SquashedGaussian.preimage`).
         log_prob: ``log pi_old(a|s)`` of the behaviour policy ``[B]``.
         advantage: GAE advantages ``[B, 1]``; value_target: the value network's targets ``[B, 1]``.
     """
 
-    obs: tuple[torch.Tensor, ...]
+    actor_in: tuple[torch.Tensor, ...]
+    critic_in: tuple[torch.Tensor, ...]
     preimage: torch.Tensor
     log_det: torch.Tensor
     log_prob: torch.Tensor
@@ -151,8 +172,16 @@ class PPOBatch:
         return self.log_prob.shape[0]
 
     def __getitem__(self, idx) -> "PPOBatch":
-        return PPOBatch(tuple(o[idx] for o in self.obs), self.preimage[idx], self.log_det[idx], self.log_prob[idx],
-                        self.advantage[idx], self.value_target[idx])
+        done: dict[int, torch.Tensor] = {}
+
+        def take(t: torch.Tensor) -> torch.Tensor:
+            out = done.get(id(t))
+            if out is None:
+                out = done[id(t)] = t[idx]
+            return out
+
+        return PPOBatch(tuple(take(t) for t in self.actor_in), tuple(take(t) for t in self.critic_in), self.preimage[idx],
+                        self.log_det[idx], self.log_prob[idx], self.advantage[idx], self.value_target[idx])
 
 
 class ClipPPOLoss(_TorchRLClipPPOLoss, metaclass=_DirectLossMeta):
@@ -194,13 +223,25 @@ class ClipPPOLoss(_TorchRLClipPPOLoss, metaclass=_DirectLossMeta):
     @torch.no_grad()
     def batch(self, tensordict: TensorDictBase) -> PPOBatch:
         """A rollout (any batch shape; advantages and value targets already there: run ``value_estimator`` first) as a
-        flat :class:`PPOBatch` on the networks' device."""
+        flat :class:`PPOBatch` on the networks' device, with each network's observations prepared by its encoder
+        (vector scaling and running statistics applied ONCE: they stand still while the epochs run; the loop updates
+        them afterwards)."""
         flat = tensordict.reshape(-1)
         dev = self.actor.a_mid.device
         keys = self.tensor_keys
+        obs = [flat.get(k).to(dev) for k in self.obs_keys]
         x, log_det = self.squash.preimage(flat.get(keys.action).to(dev))
-        return PPOBatch(tuple(flat.get(k).to(dev) for k in self.obs_keys), x, log_det, flat.get(keys.sample_log_prob).to(dev).reshape(-1),
-                        flat.get(keys.advantage).to(dev), flat.get(keys.value_target).to(dev))
+        return PPOBatch(self.actor.encoder.prepare(*obs), self.critic.encoder.prepare(*obs), x, log_det,
+                        flat.get(keys.sample_log_prob).to(dev).reshape(-1), flat.get(keys.advantage).to(dev),
+                        flat.get(keys.value_target).to(dev))
+
+    def _bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """TorchRL's ``_clip_bounds`` ``(log1p(-eps), log1p(eps))``, recomputed only when ``clip_epsilon`` changes."""
+        e = self.clip_epsilon
+        key = (id(e), e._version)
+        if self.__dict__.get("_bounds_key") != key:
+            self.__dict__["_bounds_val"], self.__dict__["_bounds_key"] = self._clip_bounds, key
+        return self.__dict__["_bounds_val"]
 
     # the two losses (the update's fast path) --------------------------------------------
     def actor_loss(self, batch: PPOBatch) -> tuple[torch.Tensor, dict]:
@@ -215,12 +256,12 @@ class ClipPPOLoss(_TorchRLClipPPOLoss, metaclass=_DirectLossMeta):
         adv = batch.advantage
         if self.normalize_advantage and adv.numel() > 1:  # TorchRL's _standardize (eps: float32 resolution)
             adv = (adv - adv.mean()) / adv.std().clamp_min(1e-6)
-        loc, scale = self.actor.dist(*batch.obs)
+        loc, scale = self.actor.dist_params(self.actor.encoder.features(*batch.actor_in))
         log_prob = batch.log_det + normal_log_prob(loc, scale, batch.preimage)
         prev = batch.log_prob
         log_weight = (log_prob - prev).unsqueeze(-1)
         gain1 = log_weight.exp() * adv
-        clipped = log_weight.clamp(*self._clip_bounds)
+        clipped = log_weight.clamp(*self._bounds())
         gain2 = clipped.exp() * adv
         loss_objective = (-torch.stack([gain1, gain2], -1).min(dim=-1).values).mean()
         if self._entropy_grad:
@@ -238,7 +279,7 @@ class ClipPPOLoss(_TorchRLClipPPOLoss, metaclass=_DirectLossMeta):
     def value_loss(self, batch: PPOBatch) -> tuple[torch.Tensor, dict]:
         """``critic_coeff * mean(distance(V_target, V(s)))``; gradients reach the value network only. Metadata: the
         predictions ``_value`` ``[B, 1]``, detached."""
-        value = self.critic(*batch.obs)
+        value = self.critic.value(self.critic.encoder.features(*batch.critic_in))
         loss = (self.critic_coeff * distance_loss(batch.value_target, value, loss_function=self.loss_critic_type)).mean()
         return loss, {"_value": value.detach()}
 
