@@ -204,3 +204,21 @@ def test_state_dict_keys_are_torchrl_s():
     t = _setup(False, None, 0.0)
     assert list(t.mine.state_dict()) == list(t.ref.state_dict())
     t.mine.load_state_dict(t.ref.state_dict())
+
+
+def test_scheduled_coefficients_are_read():
+    """``entropy_coeff`` and ``clip_epsilon`` are buffers a schedule may change in place; the tensor path follows."""
+    torch.manual_seed(0)
+    t = _setup(False, None, 0.0)
+    params = [*t.actor.parameters(), *t.critic.parameters()]
+    _run(t.mine, t.data, params)  # caches the coefficients as they were
+    for m in (t.mine, t.ref):
+        m.entropy_coeff.fill_(0.5)
+        m.clip_epsilon.fill_(0.05)
+    out_ref, g_ref = _run(t.ref, t.data, params)
+    out, g = _run(t.mine, t.data, params)
+    assert float(out["loss_entropy"].detach()) != 0
+    for k in ("loss_objective", "loss_entropy", "clip_fraction"):
+        torch.testing.assert_close(out[k], out_ref[k], **TOL, msg=k)
+    for a, b in zip(g, g_ref):
+        torch.testing.assert_close(a, b, **TOL)

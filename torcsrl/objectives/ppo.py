@@ -1,37 +1,47 @@
 """PPO's clipped surrogate (Schulman et al. 2017): TorchRL's ``ClipPPOLoss``, computed on plain tensors.
 
-:class:`ClipPPOLoss` IS TorchRL's ``ClipPPOLoss`` (subclass: same constructor arguments for what PPO here uses, same
-buffers, parameters and state-dict keys, same ``GAE`` value estimator, same output keys) with its per-minibatch
-forward rewritten for speed on CPU. TorchRL's forward builds a TensorDict per call, swaps the functional parameters
-into the networks (``to_module``), builds a ``TanhNormal`` through ``ProbabilisticActor`` and validates it: ~10 ms of
-framework per minibatch of 64 on the project's CPU, for ~1 ms of arithmetic with 256x256 networks. Here:
+:class:`ClipPPOLoss` IS TorchRL's ``ClipPPOLoss`` (a subclass: the same buffers, parameters and state-dict keys, the
+same ``GAE`` value estimator, the same output keys) with its per-minibatch forward rewritten for speed on CPU.
+TorchRL's forward builds TensorDicts per call, swaps the functional parameters into the networks (``to_module``),
+builds and validates a ``TanhNormal`` through ``ProbabilisticActor``: a PPO update of a minibatch of 64 with 256x256
+networks takes ~9.5 ms of CPU on the project's machine that way, ~3.3 ms this way, of which ~2 ms are the networks'
+matmuls and Adam (``benchmarks/ppo_paths.py``). Here:
 
 * the networks (:class:`~torcsrl.nets.TanhGaussianActor`, :class:`~torcsrl.nets.ValueNet`) are called on tensors;
 * a rollout is unpacked ONCE into a :class:`PPOBatch` of tensors (:meth:`ClipPPOLoss.batch`), which the loop shuffles
-  and slices into minibatches, with the parts of the stored action's log-density that do not depend on the network
-  (the tanh pre-image ``atanh(a)`` and the change-of-variables term) computed there, once, instead of per minibatch;
-* the public :meth:`~ClipPPOLoss.actor_loss` and :meth:`~ClipPPOLoss.value_loss` are the update's fast path (not
-  wrapped in TorchRL's exploration-mode contexts: :class:`~torcsrl.objectives.base._DirectLossMeta`).
+  once an epoch and slices into minibatches; what does not depend on the weights is computed there, once: each
+  encoder's observation scaling and running statistics (:meth:`~torcsrl.nets.ObsEncoder.prepare`; the statistics
+  stand still during the epochs), and the stored action's tanh pre-image ``atanh(a)`` and change-of-variables term;
+* the public :meth:`~ClipPPOLoss.actor_loss` and :meth:`~ClipPPOLoss.value_loss` take a :class:`PPOBatch` and are the
+  update's fast path (not wrapped in TorchRL's exploration-mode contexts: :class:`~torcsrl.objectives.base._DirectLossMeta`);
+  ``forward`` keeps TorchRL's interface (a TensorDict in, TorchRL's keys out).
 
-What is computed is TorchRL's, operation for operation (tested equal to TorchRL's on the same batch, gradients too):
+What is computed is TorchRL's, operation for operation and in the same order, so the floats are the same (tested:
+every output term and both networks' gradients; ``benchmarks/ppo_paths.py`` trains both paths side by side and finds
+the parameters bit-identical after several iterations):
 
 * ``log pi(a|s)`` of the stored action as ``TanhNormal.log_prob``: ``x = atanh(clamp(a, +-(1 - 1e-6)))`` (TorchRL's
   ``SafeTanhTransform`` inverse; the affine map first when the bounds are not [-1, 1]), the Gaussian's log-density
-  at ``x`` summed over action dims, minus ``sum log|d tanh(x)/dx|``;
+  at ``x`` summed over action dims, minus ``sum log|da/dx|``. The behaviour log-probability in the batch is what
+  TorchRL's ``ProbabilisticActor`` stores: scored at the pre-tanh draw ``u`` itself, not at ``atanh(tanh(u))``; the
+  two differ by rounding, and a lot where tanh saturates (``|u|`` > ~7.6), as in TorchRL;
 * advantages standardised per minibatch: ``(A - mean) / max(std, 1e-6)``, unbiased std (``normalize_advantage``);
 * ``r = exp(log pi - log pi_old)``; objective ``-mean(min(r A, clip(r, 1 - eps, 1 + eps) A))`` with the clip applied
   to ``log r`` as TorchRL does (``[log1p(-eps), log1p(eps)]``); ``clip_fraction``: the share of clipped ``log r``;
   ``kl_approx = mean(log pi_old - log pi)``;
-* the entropy bonus ``-entropy_coeff * mean(H)``: a tanh-Gaussian has no closed-form entropy, TorchRL estimates it by
-  ONE reparameterised draw, ``H = -log pi(u)`` with ``u = loc + eps * scale`` scored at the pre-tanh draw itself
-  (``TanhNormal.rsample_and_log_prob``); so does this loss, with the same draw from torch's global generator (same
-  count, same order: the same ``H``). With ``entropy_coeff = 0`` (the default) the estimate is still drawn and logged,
-  but without a graph: TorchRL's ``0 * H`` adds exact zeros to the gradients;
+* the entropy bonus ``-entropy_coeff * mean(H)``: a tanh-Gaussian has no closed-form entropy; TorchRL estimates it
+  by ONE reparameterised draw per sample, ``H = -log pi(u)``, ``u = loc + eps * scale`` scored at ``u`` itself
+  (``TanhNormal.rsample_and_log_prob``), an unbiased estimate of the entropy of the squashed distribution (a
+  change of variables keeps ``-E log p``); so does this loss, with the same draw from torch's global generator (same
+  count, same order: the same ``H``). With ``entropy_coeff = 0`` (the default) the estimate is still drawn and
+  logged, without a graph: TorchRL's ``0 * H`` adds exact zeros to the gradients;
 * the value loss ``critic_coeff * mean((V(s) - V_target)^2)`` (``loss_critic_type``: TorchRL's ``distance_loss``).
 
-Where it differs from TorchRL, and why: only the options PPO here does not use are left out (value clipping, a
-proximal ``delay_actor`` policy, importance-ratio caps, advantage ``ValueNorm``, per-head entropy coefficients,
-composite action spaces, loss masks); the constructor refuses them by not taking them.
+Where it differs from TorchRL: the options PPO here does not use are not available (value clipping, a proximal
+``delay_actor`` policy, importance-ratio caps, advantage ``ValueNorm``, per-head entropy coefficients, composite
+action spaces, loss masks, ``separate_losses``): the constructor does not take them. ``forward`` flattens the batch
+first, so its diagnostics over the batch (``ESS``, ``explained_variance``) are one number where TorchRL gives one per
+trailing index of a ``[N, T]`` batch.
 """
 
 from __future__ import annotations
@@ -217,7 +227,6 @@ class ClipPPOLoss(_TorchRLClipPPOLoss, metaclass=_DirectLossMeta):
         self.obs_keys = list(obs_keys)
         low, high = action_low.to(actor_network.a_mid.device), action_high.to(actor_network.a_mid.device)
         self.squash = SquashedGaussian(low.float(), high.float())
-        self._entropy_grad = float(entropy_coeff) != 0.0
 
     # the rollout as tensors ------------------------------------------------------------
     @torch.no_grad()
@@ -234,6 +243,14 @@ class ClipPPOLoss(_TorchRLClipPPOLoss, metaclass=_DirectLossMeta):
         return PPOBatch(self.actor.encoder.prepare(*obs), self.critic.encoder.prepare(*obs), x, log_det,
                         flat.get(keys.sample_log_prob).to(dev).reshape(-1), flat.get(keys.advantage).to(dev),
                         flat.get(keys.value_target).to(dev))
+
+    def _entropy_weighted(self) -> bool:
+        """``entropy_coeff != 0``, read from the buffer again only when it changes (it may be scheduled)."""
+        c = self.entropy_coeff
+        key = (id(c), c._version)
+        if self.__dict__.get("_coeff_key") != key:
+            self.__dict__["_coeff_nonzero"], self.__dict__["_coeff_key"] = bool(c != 0), key
+        return self.__dict__["_coeff_nonzero"]
 
     def _bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
         """TorchRL's ``_clip_bounds`` ``(log1p(-eps), log1p(eps))``, recomputed only when ``clip_epsilon`` changes."""
@@ -264,7 +281,7 @@ class ClipPPOLoss(_TorchRLClipPPOLoss, metaclass=_DirectLossMeta):
         clipped = log_weight.clamp(*self._bounds())
         gain2 = clipped.exp() * adv
         loss_objective = (-torch.stack([gain1, gain2], -1).min(dim=-1).values).mean()
-        if self._entropy_grad:
+        if self._entropy_weighted():
             entropy = self.squash.entropy_estimate(loc, scale)
         else:  # the same draw and value; TorchRL's 0 x H adds exact zeros to the gradients
             with torch.no_grad():
