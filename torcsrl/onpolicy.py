@@ -2,9 +2,11 @@
 
 It reads in the order PPO runs, beside :func:`torcsrl.train.train` (which it shares env, validation, logging and
 checkpoint pieces with): env (``env.num_cars`` cars in one world), agent (tanh-Gaussian actor, value network), loss
-(TorchRL's ``ClipPPOLoss`` with ``GAE``), collector (:class:`~torcsrl.utils.collector.StepCollector`, batches of
-``rollout_steps`` steps of every car, time last), optimisers; then per batch: GAE advantages and value targets ->
-``epochs`` passes of shuffled minibatches of ``batch_size`` (:func:`torcsrl.agents.ppo.update`) -> the observation
+(TorchRL's ``ClipPPOLoss`` with ``GAE``, computed on tensors: :mod:`torcsrl.objectives.ppo`), collector
+(:class:`~torcsrl.utils.collector.StepCollector`, batches of ``rollout_steps`` steps of every car, time last),
+optimisers; then per batch: GAE advantages and value targets -> the batch as tensors
+(:meth:`~torcsrl.objectives.ppo.ClipPPOLoss.batch`) -> ``epochs`` passes of shuffled minibatches of ``batch_size``
+(:func:`torcsrl.agents.ppo.update`; one permutation an epoch, the minibatches are its slices) -> the observation
 statistics take in the batch (after the epochs, so the update sees the statistics the batch was collected with) ->
 log -> periodic deterministic validation (the mean action) -> checkpoint.
 
@@ -99,11 +101,13 @@ def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             # advantages (GAE) and value targets with the networks that collected the batch
             with torch.no_grad():
                 loss.value_estimator(data)
-            # epochs of shuffled minibatches
-            flat = data.reshape(-1)
+            # epochs of shuffled minibatches: the rollout as tensors once, shuffled once an epoch, sliced (views)
+            batch = loss.batch(data)
+            n = len(batch)
             for _ in range(epochs):
-                for idx in torch.randperm(flat.numel()).split(minibatch):
-                    last = agent.update(hot, loss, optim, None, flat[idx], counters.updates)
+                shuffled = batch[torch.randperm(n)]
+                for start in range(0, n, minibatch):
+                    last = agent.update(hot, loss, optim, None, shuffled[start:start + minibatch], counters.updates)
                     counters.updates += 1
             # the observation statistics take in the batch (for the next rollout and update)
             for enc in encoders:

@@ -66,3 +66,33 @@ def test_encoder_obs_norm_standardises_the_scaled_vectors():
     out = enc(*obs)
     torch.testing.assert_close(out.mean(0), torch.zeros(out.shape[-1]), atol=1e-4, rtol=0)
     assert "norm.mean" in enc.state_dict() and "norm.mean" not in plain.state_dict()
+
+
+@pytest.mark.parametrize("keys", [["state"], ["rangefinder", "state"], ["rangefinder", "pixels"], ["pixels"]])
+@pytest.mark.parametrize("obs_norm", [False, True])
+def test_encoder_prepare_then_features_is_forward(keys, obs_norm):
+    """What PPO prepares once per rollout and finishes per minibatch is the encoder's forward, to the bit."""
+    torch.manual_seed(0)
+    env = make_toy_env(sensors=keys, camera={"height": 16, "width": 16} if "pixels" in keys else None)
+    enc = ObsEncoder(env.observation_spec, keys, cnn_channels=(4,), feature_dim=8, obs_norm=obs_norm)
+    td = env.reset()
+    obs = [td[k].expand(32, *td[k].shape).clone() for k in keys]
+    obs = [o + torch.rand_like(o) if o.is_floating_point() else torch.randint_like(o, 256) for o in obs]
+    enc.update_norm(*obs)
+    prepared = enc.prepare(*obs)
+    assert torch.equal(enc.features(*prepared), enc(*obs))
+    assert torch.equal(enc.features(*[p[5:9] for p in prepared]), enc(*[o[5:9] for o in obs]))  # rows prepared in bulk
+
+
+def test_mlp_forward_is_the_module_call():
+    from torcsrl.nets import ValueNet, mlp, mlp_forward
+
+    torch.manual_seed(0)
+    net, x = mlp(7, (16, 16), 3), torch.randn(5, 7)
+    y1, y2 = net(x), mlp_forward(net, x)
+    assert torch.equal(y1, y2)
+    g1 = torch.autograd.grad(y1.sum(), list(net.parameters()))
+    g2 = torch.autograd.grad(mlp_forward(net, x).sum(), list(net.parameters()))
+    assert all(torch.equal(a, b) for a, b in zip(g1, g2))
+    v = ValueNet(ObsEncoder(make_toy_env().observation_spec, ["state"]), (16,))
+    assert torch.equal(v(torch.ones(2, 6)), v.net(v.encoder(torch.ones(2, 6))))

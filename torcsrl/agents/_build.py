@@ -185,6 +185,20 @@ def _step(opt: torch.optim.Optimizer) -> None:
     fast() if fast is not None else opt.step()
 
 
+@torch.no_grad()
+def clip_grad_norm(params: list[torch.Tensor], max_norm: float) -> torch.Tensor:
+    """``torch.nn.utils.clip_grad_norm_(params, max_norm)`` for parameters of one device and dtype, without its
+    grouping and checks (~40 us a call on the project's CPU): ``g *= min(1, max_norm / (|g|_2 + 1e-6))`` with one
+    norm over all gradients, the same operations (``_foreach_norm``, ``vector_norm`` of the stacked norms,
+    ``_foreach_mul_``), hence the same values. Returns the total norm."""
+    grads = [p.grad for p in params if p.grad is not None]
+    if not grads:
+        return torch.zeros(())
+    total = torch.linalg.vector_norm(torch.stack(torch._foreach_norm(grads, 2.0)), 2.0)
+    torch._foreach_mul_(grads, torch.clamp(float(max_norm) / (total + 1e-6), max=1.0))
+    return total
+
+
 #: ``algo.precision`` -> the autocast dtype of the updates (None: plain float32).
 PRECISIONS = {"float32": None, "bfloat16": torch.bfloat16}
 

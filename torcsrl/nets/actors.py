@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from torcsrl.nets.encoders import ObsEncoder, mlp
+from torcsrl.nets.encoders import ObsEncoder, mlp, mlp_forward
 
 class DeterministicActor(nn.Module):
     """mu(s): encoder -> MLP -> tanh, rescaled to the action bounds ``[low, high]``.
@@ -91,12 +91,12 @@ class TanhGaussianActor(nn.Module):
 
     def act(self, x: torch.Tensor) -> torch.Tensor:
         """The deterministic action from the encoder's features ``x``: ``mid + half * tanh(loc)``."""
-        a = torch.tanh(self.net(x)[..., : self.action_dim])
+        a = torch.tanh(mlp_forward(self.net, x)[..., : self.action_dim])
         return a if self._unit else self.a_mid + self.a_half * a
 
     def dist_params(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(loc, std) of the pre-tanh Gaussian from the encoder's features ``x``."""
-        out = self.net(x)
+        out = mlp_forward(self.net, x)
         if self.state_dependent_std:
             loc, log_std = out.chunk(2, -1)
             log_std = self.log_std_min + 0.5 * (self.log_std_max - self.log_std_min) * (torch.tanh(log_std) + 1)

@@ -17,7 +17,7 @@ from typing import Sequence
 import torch
 from torch import nn
 
-from torcsrl.nets.encoders import ObsEncoder, mlp
+from torcsrl.nets.encoders import ObsEncoder, mlp, mlp_forward
 
 class EnsembleLinear(nn.Module):
     """E independent linear layers run as one batched matmul: ``[E,B,in] -> [E,B,out]``.
@@ -154,4 +154,8 @@ class ValueNet(nn.Module):
         self.net = mlp(encoder.out_dim, hidden, 1)
 
     def forward(self, *obs: torch.Tensor) -> torch.Tensor:
-        return self.net(self.encoder(*obs))
+        return self.value(self.encoder(*obs))
+
+    def value(self, x: torch.Tensor) -> torch.Tensor:
+        """V ``[B, 1]`` from the encoder's features ``x`` (``forward`` = ``value(encoder(*obs))``)."""
+        return mlp_forward(self.net, x)
