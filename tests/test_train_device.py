@@ -82,6 +82,38 @@ def test_device_cpu_runs_the_loop_on_the_cpu(tmp_path):
     assert {t.device.type for o in ck["optim"].values() for st in o["state"].values() for t in st.values() if torch.is_tensor(t)} == {"cpu"}
 
 
+ALGOS = ["ddpg", "td3", "d4pg", "sac", "ppo"]
+PPO_SMALL = ["algo.rollout_steps=50", "algo.epochs=2", "algo.batch_size=32"]
+
+
+@pytest.mark.parametrize("algo", ["ddpg", "td3", "d4pg", "sac"])
+def test_every_algorithm_places_its_networks_and_optimisers(algo):
+    """The off-policy algorithms' builders on torch's ``meta`` device: nothing a loss computes with stays on the CPU.
+    (PPO's loss cannot be built there: TorchRL's ``ClipPPOLoss`` reads a value at construction; the CUDA smoke covers it.)"""
+    cfg = cfg_for(f"algo={algo}", "env.sensors=[pixels,state]")
+    env = make_train_env(cfg)
+    try:
+        actor, critic, loss = make_networks(cfg, agents.get(algo), env, ["pixels", "state"], torch.device("meta"))
+        placed = {k: t.device.type for k, t in loss.state_dict().items()}
+        assert placed and set(placed.values()) == {"meta"}, {k: v for k, v in placed.items() if v != "meta"}
+        assert {p.device.type for p in [*actor.parameters(), *critic.parameters()]} == {"meta"}
+        optim = agents.get(algo).make_optimizers(cfg.algo, loss)
+        assert {p.device.type for o in optim.values() for g in o.param_groups for p in g["params"]} == {"meta"}
+    finally:
+        env.close()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA here")
+@pytest.mark.parametrize("algo", ALGOS)
+def test_cuda_smoke_every_algorithm(algo, tmp_path):
+    """``device=cuda`` trains each algorithm on pixels + state (PPO: its own loop, GAE on the GPU) and checkpoints."""
+    r = train(cfg_for(f"algo={algo}", "device=cuda", f"run_dir={tmp_path}", "total_frames=200", "env.sensors=[pixels,state]",
+                      *(PPO_SMALL if algo == "ppo" else [])))
+    assert r["updates"] > 0
+    ck = load_checkpoint(r["checkpoint"])
+    assert all(t.device.type == "cpu" for t in ck["loss"].values())
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA here")
 def test_cuda_smoke(tmp_path):
     r = train(cfg_for("algo=td3", "device=cuda", f"run_dir={tmp_path}", "total_frames=200", "env.sensors=[pixels,state]",

@@ -97,6 +97,8 @@ def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             data = next(batches)
             window.book(data, counters)
             counters.frames += data.numel()
+            if device.type != "cpu":  # the rollout joins the networks (device=cuda): GAE, minibatches, statistics
+                data = data.to(device, non_blocking=True)
 
             # advantages (GAE) and value targets with the networks that collected the batch
             with torch.no_grad():
