@@ -462,8 +462,6 @@ def _check_algo_fit(c: Mapping, out: list[str]) -> None:
     if brake.get("enabled"):
         out.append("algo.stochastic_brake.enabled=true: algo=ppo's update needs the log-probability of the action taken, which the "
                    "brake would replace; allowed: false")
-    if "device" in c and str(c["device"]) != "cpu":
-        out.append(f"device: {c['device']!r}: algo=ppo updates on the CPU only so far; allowed: cpu")
 
 
 def _check_budget(c: Mapping, out: list[str]) -> None:

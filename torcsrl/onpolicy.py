@@ -28,6 +28,7 @@ from omegaconf import DictConfig, OmegaConf
 from tensordict.nn import TensorDictModule
 
 from torcsrl import agents
+from torcsrl.agents.exploration import DeviceActorModule
 from torcsrl.train import (
     Counters,
     TrainWindow,
@@ -66,7 +67,8 @@ def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     cars = max(1, env.batch_size.numel())
     collector = StepCollector(env, policy, cars * int(cfg.algo.rollout_steps))
     eval_envs = make_eval_envs(cfg)
-    eval_policy = TensorDictModule(actor, in_keys=obs_keys, out_keys=["action"])  # the mean action
+    eval_policy = TensorDictModule(actor, in_keys=obs_keys, out_keys=["action"]) if device.type == "cpu" else \
+        DeviceActorModule(actor, obs_keys, ["action"], device)  # the mean action (CPU envs, actor on device)
     meta = expected_meta(cfg, env, obs_keys)
     counters = Counters(next_eval=int(cfg.eval.every_episodes), next_ckpt=int(cfg.checkpoint.every_frames) or total,
                         next_log=int(cfg.logger.every_frames))
