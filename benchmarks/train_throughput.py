@@ -164,15 +164,19 @@ def main() -> None:
     ap.add_argument("--algos", nargs="+", default=["td3", "ddpg", "d4pg", "sac"])
     ap.add_argument("--cars", type=int, default=16, help="PPO: cars (ours: one batched world; SB3: SubprocVecEnv processes)")
     ap.add_argument("--ppo-rollout", type=int, default=128, help="PPO: env steps per car per rollout")
+    ap.add_argument("--no-sb3", action="store_true", help="our contenders only (no SB3 runs, no ratios)")
     ap.add_argument("overrides", nargs="*", help="extra Hydra overrides for our runs (after --)")
     a = ap.parse_args()
     try:
+        if a.no_sb3:
+            raise ImportError
         import stable_baselines3  # noqa: F401
 
         have_sb3 = True
     except ImportError:
         have_sb3 = False
-        print("stable-baselines3 is not installed (pip install stable-baselines3): ratios are left out", file=sys.stderr)
+        if not a.no_sb3:
+            print("stable-baselines3 is not installed (pip install stable-baselines3): ratios are left out", file=sys.stderr)
     peers = {PEER[k.partition("+")[0]] for k in a.algos}
     if len(peers) != 1:
         raise SystemExit(f"--algos {' '.join(a.algos)} compare with different SB3 peers ({', '.join(sorted(peers))}); run them separately")

@@ -67,15 +67,19 @@ def test_two_workers_give_one_batch_of_all_cars_and_act_with_the_learners_weight
         env.close()
 
 
-def test_ppo_smoke_run_with_two_workers(tmp_path):
-    """One car a worker (each worker's env has no batch dim): the loop still gets [cars, T]."""
-    r = train(cfg_for("env.num_cars=2", "collector.num_workers=2", "total_frames=160", "logger.every_frames=40",
-                      "checkpoint.every_frames=80", f"run_dir={tmp_path}"))
-    assert r["frames"] == 160 and r["updates"] == 4 * 2 * 2  # 4 batches of 2 cars x 20 steps, 2 epochs of 40 / 32 -> 2
-    rows = read_csv_metric(tmp_path, "loss/critic")
-    assert len(rows) >= 2 and all(math.isfinite(v) for _, v in rows)
+def test_ppo_smoke_run_with_two_workers_and_its_resume(tmp_path):
+    """One car a worker (each worker's env has no batch dim): the loop still gets [cars, T]. A resumed run carries on
+    from the checkpoint (networks, statistics, counters; the workers' episodes restart)."""
+    ov = ["env.num_cars=2", "collector.num_workers=2", "logger.every_frames=40", "checkpoint.every_frames=40", f"run_dir={tmp_path}"]
+    r = train(cfg_for(*ov, "total_frames=80"))
+    assert r["frames"] == 80 and r["updates"] == 2 * 2 * 2  # 2 batches of 2 cars x 20 steps, 2 epochs of 40 / 32 -> 2
     ck = torch.load(r["checkpoint"], weights_only=False)
-    assert float(ck["actor"]["encoder.norm.count"]) == 160 and ck["collector"] == {}
+    assert float(ck["actor"]["encoder.norm.count"]) == 80 and ck["collector"] == {}
+    r = train(cfg_for(*ov, "total_frames=160", "checkpoint.resume=latest"))
+    assert r["frames"] == 160 and r["updates"] == 4 * 2 * 2
+    rows = read_csv_metric(tmp_path, "loss/critic")
+    assert [s for s, _ in rows] == [40, 80, 120, 160] and all(math.isfinite(v) for _, v in rows)
+    assert float(torch.load(r["checkpoint"], weights_only=False)["actor"]["encoder.norm.count"]) == 160
 
 
 def test_a_car_count_the_workers_cannot_share_is_refused_in_one_line():

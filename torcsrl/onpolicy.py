@@ -84,6 +84,7 @@ def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
                  env=env, eval_envs=eval_envs, threads=threads)
     if cfg.checkpoint.resume:
         counters = _resume(counters=None, run_dir=run_dir, **state)
+        collector.update_policy_weights_()  # worker processes: they act with the restored weights and statistics
     loggers = make_loggers(cfg.logger["backends"], run_dir, cfg.logger.exp_name, cfg.logger.wandb_project, cfg.logger.wandb_mode)
     progress = Progress(total, enabled=bool(cfg.progress))
     print(f"[torcsrl] training ppo on env={cfg.env.name} ({cars} cars) for {total} steps; outputs in {run_dir}", file=sys.stderr)
