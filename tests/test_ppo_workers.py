@@ -39,8 +39,10 @@ def test_two_workers_give_one_batch_of_all_cars_and_act_with_the_learners_weight
     agent, keys = agents.get("ppo"), list(cfg.env.sensors)
     actor, critic, _ = make_networks(cfg, agent, env, keys, torch.device("cpu"))
     policy = agent.make_exploration(cfg.algo, actor, env, keys)
+    rng = torch.get_rng_state()
     collector = make_rollout_collector(cfg, env, policy, 2, 1)
     assert isinstance(collector, WorkerRollouts)
+    assert torch.equal(torch.get_rng_state(), rng)  # the workers seed their own generators, not the learner's
     try:
         batches = iter(collector)
         data = next(batches)

@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, OmegaConf, open_dict
+from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 from torchrl.collectors import MultiSyncCollector
@@ -193,10 +193,11 @@ class WorkerRollouts:
     batches of the workers joined along the cars: ``[num_cars, rollout_steps]`` (worker 0's cars first), as the
     in-process :class:`~torcsrl.utils.collector.StepCollector` gives them, so GAE runs along time per car.
 
-    :meth:`update_policy_weights_` copies the learner policy's parameters AND buffers (the observation statistics of
-    :class:`~torcsrl.nets.RunningNorm`) to the workers (TorchRL's shared-memory weight sync); the loop calls it after
-    every update, and the workers collect only when asked (``MultiSyncCollector``), so every rollout is collected with
-    the weights of the update before it, as in one process."""
+    :meth:`update_policy_weights_` gives the workers the learner policy's parameters AND buffers (the observation
+    statistics of :class:`~torcsrl.nets.RunningNorm`): TorchRL's shared-memory weight sync copies them into the shared
+    buffers and waits for each worker to apply them. The loop calls it after every update (and after a resume), and
+    the workers collect only when asked (``MultiSyncCollector``), so every rollout is collected with the weights of the
+    update before it, as in one process."""
 
     def __init__(self, collector: MultiSyncCollector):
         self.collector = collector
