@@ -8,7 +8,11 @@ minibatches of ``--minibatch``, observation statistics), alternating which goes 
 + policy) and update (GAE + minibatch updates + statistics). The two paths compute the same numbers: the script also
 reports the largest parameter difference between the two copies after the last round (0.0: bitwise the same run).
 
-    python benchmarks/ppo_paths.py [--cars 16] [--rollout 128] [--rounds 4] [--threads 1]
+``--paths`` picks the contenders (the first is the reference of the ratios): ``torchrl``, ``ours`` and ``ours+bf16``
+(ours with ``algo.precision=bfloat16``: mixed-precision updates), e.g. ``--paths ours ours+bf16`` times PPO's update in
+float32 and in bfloat16, interleaved in one process.
+
+    python benchmarks/ppo_paths.py [--cars 16] [--rollout 128] [--rounds 4] [--threads 1] [--paths torchrl ours]
 """
 
 from __future__ import annotations
@@ -55,9 +59,10 @@ def torchrl_update(cfg, loss, optim, batch) -> dict:
 class Path_:
     """One copy of the PPO stack and its RNG state; ``iteration()`` -> (collection CPU s, update CPU s)."""
 
-    def __init__(self, cfg, fast: bool):
+    def __init__(self, cfg, fast: bool, precision: str = "float32"):
         torch.manual_seed(int(cfg.seed))
         self.cfg, self.fast, self.hot = cfg, fast, plain(cfg.algo)
+        self.hot.precision = precision
         self.agent = agents.get("ppo")
         self.keys = list(cfg.env.sensors)
         self.env = make_train_env(cfg)
@@ -111,6 +116,8 @@ def main() -> None:
     ap.add_argument("--minibatch", type=int, default=64)
     ap.add_argument("--rounds", type=int, default=4, help="iterations of each path (after one warm-up iteration each)")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--paths", nargs="+", default=["torchrl", "ours"], choices=["torchrl", "ours", "ours+bf16"],
+                    help="contenders, the first the reference of the ratios")
     ap.add_argument("overrides", nargs="*", help="extra Hydra overrides of the training config")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
@@ -119,7 +126,9 @@ def main() -> None:
             "algo=ppo", "env.track=oval", f"env.num_cars={a.cars}", f"algo.rollout_steps={a.rollout}", f"algo.batch_size={a.minibatch}",
             f"algo.epochs={a.epochs}", "algo.actor_hidden=[256,256]", "algo.critic_hidden=[256,256]", f"run_dir={tempfile.mkdtemp()}",
             f"threads={a.threads}", *a.overrides])
-    paths = {"torchrl": Path_(cfg, fast=False), "ours": Path_(cfg, fast=True)}
+    if len(set(a.paths)) < 2:
+        raise SystemExit("--paths: name at least two different contenders")
+    paths = {k: Path_(cfg, fast=k != "torchrl", precision="bfloat16" if k.endswith("+bf16") else "float32") for k in dict.fromkeys(a.paths)}
     times: dict[str, list[tuple[float, float]]] = {k: [] for k in paths}
     for r in range(a.rounds + 1):
         order = list(paths) if r % 2 == 0 else list(reversed(paths))
@@ -130,18 +139,21 @@ def main() -> None:
     frames = a.cars * a.rollout
     print(f"PPO iteration = {a.cars} cars x {a.rollout} steps = {frames} frames, {a.epochs} epochs x minibatch {a.minibatch} "
           f"({a.epochs * -(-frames // a.minibatch)} updates), 256x256, {a.threads} thread(s); median of {a.rounds} rounds, process CPU s")
-    print(f"{'path':>8} {'collect s':>10} {'update s':>10} {'total s':>10} {'frames/CPU s':>13}")
+    print(f"{'path':>9} {'collect s':>10} {'update s':>10} {'total s':>10} {'frames/CPU s':>13}")
     med = {}
     for k, ts in times.items():
         c, u = statistics.median(t[0] for t in ts), statistics.median(t[1] for t in ts)
         med[k] = (c, u)
-        print(f"{k:>8} {c:10.3f} {u:10.3f} {c + u:10.3f} {frames / (c + u):13.0f}")
-    (c0, u0), (c1, u1) = med["torchrl"], med["ours"]
-    print(f"ratio torchrl/ours: collect {c0 / c1:.2f}x, update {u0 / u1:.2f}x, total {(c0 + u0) / (c1 + u1):.2f}x")
-    with torch.no_grad():
-        diff = max(float((p - q).abs().max()) for p, q in zip(paths["torchrl"].actor.parameters(), paths["ours"].actor.parameters()))
-        diff_c = max(float((p - q).abs().max()) for p, q in zip(paths["torchrl"].critic.parameters(), paths["ours"].critic.parameters()))
-    print(f"largest parameter difference after {a.rounds + 1} iterations of each: actor {diff:.3g}, critic {diff_c:.3g}")
+        print(f"{k:>9} {c:10.3f} {u:10.3f} {c + u:10.3f} {frames / (c + u):13.0f}")
+    ref, *others = list(paths)
+    c0, u0 = med[ref]
+    for k in others:
+        c1, u1 = med[k]
+        print(f"ratio {ref}/{k}: collect {c0 / c1:.2f}x, update {u0 / u1:.2f}x, total {(c0 + u0) / (c1 + u1):.2f}x")
+        with torch.no_grad():
+            diff = max(float((p - q).abs().max()) for p, q in zip(paths[ref].actor.parameters(), paths[k].actor.parameters()))
+            diff_c = max(float((p - q).abs().max()) for p, q in zip(paths[ref].critic.parameters(), paths[k].critic.parameters()))
+        print(f"largest parameter difference {ref} vs {k} after {a.rounds + 1} iterations of each: actor {diff:.3g}, critic {diff_c:.3g}")
 
 
 if __name__ == "__main__":

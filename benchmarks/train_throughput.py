@@ -7,7 +7,8 @@ wall-clock second of the whole loop (collect + store + sample + update), measure
 warm-up, for each torch thread count asked for.
 
 A contender ``<algo>+bf16`` runs ``<algo>`` with ``algo.precision=bfloat16`` (mixed-precision
-updates; fast only where the CPU has bfloat16 units, which the header line reports).
+updates; fast only where the CPU has bfloat16 units, which the header line reports); ``ppo+w2`` runs PPO with
+``collector.num_workers=2`` (the same ``--cars`` split over 2 worker processes); they combine: ``ppo+w2+bf16``.
 
 The box is shared, so absolute figures drift with the load. What counts is the RATIO to SB3
 measured side by side: each round runs every contender once (SB3 first on even rounds, last
@@ -16,11 +17,13 @@ over rounds. SB3 is used when importable (``pip install stable-baselines3``, the
 extra; a ``--target /tmp/peers`` install is picked up too).
 
 PPO (``--algos ppo``): env frames per wall second while training on the oval (the training config's 10 Hz race env,
-``--cars`` cars: ours in one batched world, SB3's as ``SubprocVecEnv`` processes of ``torcsrl/Race-v0``), rollouts of
-``--ppo-rollout`` steps a car, 10 epochs of minibatches of 64, 256x256 nets, compared with SB3 PPO at the same settings.
+``--cars`` cars: ours in one batched world, or ``ppo+wN`` in N worker processes of ``--cars / N`` cars; SB3's as
+``SubprocVecEnv`` processes of ``torcsrl/Race-v0``), rollouts of ``--ppo-rollout`` steps a car, 10 epochs of minibatches
+of 64, 256x256 nets, compared with SB3 PPO at the same settings. CPU seconds are summed over the processes: ours with
+its workers (``time/worker_cpu_s``), SB3's with its ``SubprocVecEnv`` processes.
 
     python benchmarks/train_throughput.py [--steps 1500] [--warmup 500] [--threads 1 2] [--rounds 3] [--algos td3 sac d4pg td3+bf16]
-    python benchmarks/train_throughput.py --algos ppo --cars 16 --steps 8192 --threads 1 [--ppo-rollout 128]
+    python benchmarks/train_throughput.py --algos ppo ppo+w2 ppo+w2+bf16 --cars 16 --steps 8192 --threads 1 [--ppo-rollout 128]
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ from hydra import compose, initialize_config_dir  # noqa: E402
 
 from torcsrl.train import train  # noqa: E402
 from torcsrl.utils.logging import read_csv_metric  # noqa: E402
+from torcsrl.utils.threads import process_cpu_s  # noqa: E402
 
 TARGETS = {"td3": 1.25, "d4pg": 1.0, "sac": 1.1, "ppo": 3.0}
 #: The SB3 peer of each of our algorithms (at the same settings).
@@ -61,14 +65,18 @@ def cpu_bf16() -> str:
 
 
 def ours(name: str, threads: int, steps: int, warmup: int, extra: list[str], cars: int = 1, rollout: int = 128) -> tuple[float, float]:
-    """(steps per wall second, steps per CPU second) of ``torcsrl.train.train`` after the warm-up (from its log).
+    """(steps per wall second, steps per CPU second) of ``torcsrl.train.train`` after the warm-up (from its log; CPU
+    seconds of the learner and, with workers, of its worker processes).
 
-    ``name``: an algorithm, or ``<algo>+bf16`` for its mixed-precision updates."""
-    algo, _, variant = name.partition("+")
-    if variant not in ("", "bf16"):
-        raise SystemExit(f"unknown contender {name!r}; allowed: <algo> or <algo>+bf16")
-    if variant == "bf16":
-        extra = [*extra, "algo.precision=bfloat16"]
+    ``name``: an algorithm, with ``+bf16`` for its mixed-precision updates and (PPO) ``+w<N>`` for N worker processes."""
+    algo, *variants = name.split("+")
+    for v in variants:
+        if v == "bf16":
+            extra = [*extra, "algo.precision=bfloat16"]
+        elif v[:1] == "w" and v[1:].isdigit() and algo == "ppo":
+            extra = [*extra, f"collector.num_workers={int(v[1:])}"]
+        else:
+            raise SystemExit(f"unknown contender {name!r}; allowed: <algo>, <algo>+bf16, ppo+w<N>[+bf16]")
     run = tempfile.mkdtemp(prefix=f"tp_{algo}_")
     every = max(50, steps // 5)
     if algo == "ppo":  # the race env, cars in one world; frames counted over all cars
@@ -91,6 +99,8 @@ def ours(name: str, threads: int, steps: int, warmup: int, extra: list[str], car
     train(cfg)
     wall = [(s, v) for s, v in read_csv_metric(Path(run), "time/elapsed_s") if s >= warmup + every]
     cpu = [(s, v) for s, v in read_csv_metric(Path(run), "time/cpu_s") if s >= warmup + every]
+    workers = dict(read_csv_metric(Path(run), "time/worker_cpu_s"))  # PPO's worker processes
+    cpu = [(s, v + workers.get(s, 0.0)) for s, v in cpu]
     shutil.rmtree(run, ignore_errors=True)
     return (wall[-1][0] - wall[0][0]) / (wall[-1][1] - wall[0][1]), (cpu[-1][0] - cpu[0][0]) / (cpu[-1][1] - cpu[0][1])
 
@@ -133,11 +143,16 @@ class SB3:
         self.m.learn(warmup + 50)
         self.threads = threads
 
+    def cpu_s(self) -> float:
+        """CPU seconds of this process and (PPO) of its ``SubprocVecEnv`` env processes."""
+        procs = getattr(getattr(self, "venv", None), "processes", [])
+        return time.process_time() + sum(process_cpu_s(p.pid) for p in procs)
+
     def __call__(self, steps: int) -> tuple[float, float]:
         torch.set_num_threads(self.threads)
-        t, c = time.perf_counter(), time.process_time()
+        t, c = time.perf_counter(), self.cpu_s()
         self.m.learn(steps, reset_num_timesteps=False)
-        return steps / (time.perf_counter() - t), steps / (time.process_time() - c)
+        return steps / (time.perf_counter() - t), steps / (self.cpu_s() - c)
 
 
 def main() -> None:
@@ -149,15 +164,19 @@ def main() -> None:
     ap.add_argument("--algos", nargs="+", default=["td3", "ddpg", "d4pg", "sac"])
     ap.add_argument("--cars", type=int, default=16, help="PPO: cars (ours: one batched world; SB3: SubprocVecEnv processes)")
     ap.add_argument("--ppo-rollout", type=int, default=128, help="PPO: env steps per car per rollout")
+    ap.add_argument("--no-sb3", action="store_true", help="our contenders only (no SB3 runs, no ratios)")
     ap.add_argument("overrides", nargs="*", help="extra Hydra overrides for our runs (after --)")
     a = ap.parse_args()
     try:
+        if a.no_sb3:
+            raise ImportError
         import stable_baselines3  # noqa: F401
 
         have_sb3 = True
     except ImportError:
         have_sb3 = False
-        print("stable-baselines3 is not installed (pip install stable-baselines3): ratios are left out", file=sys.stderr)
+        if not a.no_sb3:
+            print("stable-baselines3 is not installed (pip install stable-baselines3): ratios are left out", file=sys.stderr)
     peers = {PEER[k.partition("+")[0]] for k in a.algos}
     if len(peers) != 1:
         raise SystemExit(f"--algos {' '.join(a.algos)} compare with different SB3 peers ({', '.join(sorted(peers))}); run them separately")
@@ -193,7 +212,8 @@ def main() -> None:
     setting = (f"race env (oval, 10 Hz), {a.cars} cars, rollouts of {a.ppo_rollout} steps a car, 10 epochs of minibatches of 64, 256x256"
                if peer_name == "PPO" else f"Pendulum-v1, 256x256, batch 256, UTD 1, {a.steps} steps after {a.warmup} warm-up")
     print(f"\n{setting}; env steps/s and ratio to SB3 {peer_name}, "
-          f"median of {a.rounds} side-by-side rounds (cpu: ratio of steps per CPU-second, meaningful at 1 thread); "
+          f"median of {a.rounds} side-by-side rounds (cpu: ratio of steps per CPU-second, summed over each side's processes; "
+          f"meaningful at 1 thread); "
           f"CPU bfloat16 units: {cpu_bf16()}")
     head = f"{'threads':>7} | {'load':>9} | {'SB3 ' + peer_name:>8} | " + " | ".join(f"{k.upper():>8} {'ratio':>6} {'cpu':>5}" for k in a.algos)
     print(head)

@@ -419,8 +419,9 @@ def _check_algo_fit(c: Mapping, out: list[str]) -> None:
     """Settings that do not apply to the chosen algorithm. SAC and PPO explore by sampling their own policy: no action
     or parameter noise (``algo.exploration`` stays at ``kind: none`` and the base's values), and SAC has no TD3 target
     smoothing. PPO learns on-policy from the batched env's rollouts: no replay (demonstrations, prioritised replay, a
-    loaded buffer, n-step returns), no worker processes, no asymmetric critic, no stochastic brake (its update needs the
-    log-probability of the action taken), the CPU only."""
+    loaded buffer, n-step returns), worker processes only as many as divide ``env.num_cars`` (the cars are split
+    evenly), no asymmetric critic, no stochastic brake (its update needs the log-probability of the action taken), the
+    CPU only."""
     algo = c.get("algo") if isinstance(c.get("algo"), Mapping) else {}
     name = algo.get("name")
     if name not in ("sac", "ppo"):
@@ -453,9 +454,12 @@ def _check_algo_fit(c: Mapping, out: list[str]) -> None:
     if _is_num(algo.get("n_steps")) and algo["n_steps"] != 1:
         out.append(f"algo.n_steps={algo['n_steps']}: algo=ppo's returns are GAE (algo.gae_lambda), not n-step; allowed: 1")
     col = c.get("collector") if isinstance(c.get("collector"), Mapping) else {}
-    if _is_num(col.get("num_workers")) and col["num_workers"] > 0:
-        out.append(f"collector.num_workers={col['num_workers']}: algo=ppo collects from the batched env in one process (env.num_cars "
-                   "cars in one world); allowed: 0")
+    env = c.get("env") if isinstance(c.get("env"), Mapping) else {}
+    cars = env.get("num_cars") if env.get("num_cars") is not None else 1
+    if _is_num(col.get("num_workers")) and col["num_workers"] > 0 and _is_num(cars) and cars >= 1 and cars % col["num_workers"]:
+        divisors = ", ".join(str(d) for d in range(1, int(cars) + 1) if cars % d == 0)
+        out.append(f"collector.num_workers={col['num_workers']}: algo=ppo splits env.num_cars={cars} cars evenly over the worker "
+                   f"processes; allowed: a divisor of {cars} ({divisors}), or 0")
     if c.get("critic_obs_keys"):
         out.append("critic_obs_keys: algo=ppo's value network sees the actor's observations; allowed: null")
     brake = algo.get("stochastic_brake") if isinstance(algo.get("stochastic_brake"), Mapping) else {}

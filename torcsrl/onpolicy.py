@@ -2,21 +2,26 @@
 
 It reads in the order PPO runs, beside :func:`torcsrl.train.train` (which it shares env, validation, logging and
 checkpoint pieces with): env (``env.num_cars`` cars in one world), agent (tanh-Gaussian actor, value network), loss
-(TorchRL's ``ClipPPOLoss`` with ``GAE``, computed on tensors: :mod:`torcsrl.objectives.ppo`), collector
-(:class:`~torcsrl.utils.collector.StepCollector`, batches of ``rollout_steps`` steps of every car, time last),
-optimisers; then per batch: GAE advantages and value targets -> the batch as tensors
-(:meth:`~torcsrl.objectives.ppo.ClipPPOLoss.batch`) -> ``epochs`` passes of shuffled minibatches of ``batch_size``
-(:func:`torcsrl.agents.ppo.update`; one permutation an epoch, the minibatches are its slices) -> the observation
-statistics take in the batch (after the epochs, so the update sees the statistics the batch was collected with) ->
-log -> periodic deterministic validation (the mean action) -> checkpoint.
+(TorchRL's ``ClipPPOLoss`` with ``GAE``, computed on tensors: :mod:`torcsrl.objectives.ppo`), collector (batches
+of ``rollout_steps`` steps of every car, ``[cars, rollout_steps]``: :class:`~torcsrl.utils.collector.StepCollector` in
+this process, or with ``collector.num_workers`` W >= 1 :class:`WorkerRollouts`, W processes of ``env.num_cars / W``
+cars each, the policy's weights and observation statistics synced to them before every rollout), optimisers; then
+per batch: GAE advantages and value targets -> the batch as tensors (:meth:`~torcsrl.objectives.ppo.ClipPPOLoss.batch`)
+-> ``epochs`` passes of shuffled minibatches of ``batch_size`` (:func:`torcsrl.agents.ppo.update`; one permutation an
+epoch, the minibatches are its slices) -> the observation statistics take in the batch (after the epochs, so the update
+sees the statistics the batch was collected with) -> the workers' policies synced -> log -> periodic deterministic
+validation (the mean action) -> checkpoint.
 
 Resuming restores networks (observation statistics included), optimisers, counters, every RNG, the collector's
 in-flight step and the env's simulation: on CPU with an env that has ``get_sim_state`` a resumed run continues exactly
 as the uninterrupted one would have. A checkpoint is written only between batches, so no rollout is ever half-kept.
+With worker processes (as in the off-policy loop) a checkpoint keeps no in-flight episodes: a resumed run restores the
+networks, optimisers, counters and the learner's RNG, and its workers start fresh episodes from their seeds.
 """
 
 from __future__ import annotations
 
+import functools
 import sys
 import time
 from dataclasses import asdict
@@ -25,7 +30,11 @@ from typing import Any
 
 import torch
 from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
+from torchrl.collectors import MultiSyncCollector
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType
 
 from torcsrl import agents
 from torcsrl.agents.exploration import DeviceActorModule
@@ -47,25 +56,26 @@ from torcsrl.utils.checkpoint import CheckpointError, checkpoint_path, latest_ch
 from torcsrl.utils.collector import StepCollector
 from torcsrl.utils.logging import Progress, log_metrics, make_loggers, truncate_csv_after
 from torcsrl.utils.seeding import rng_state, seed_everything, set_rng_state
-from torcsrl.utils.threads import configure_threads
+from torcsrl.utils.threads import configure_threads, process_cpu_s
 
 
 def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """Train ``algo=ppo`` on ``cfg.env`` in ``run_dir`` (held by :func:`torcsrl.train.train`); returns the final metrics."""
     ckpt_dir = run_dir / "checkpoints"
-    threads = configure_threads(cfg.threads, 0)
+    workers = int(cfg.collector.num_workers)
+    threads = configure_threads(cfg.threads, workers)
     seed_everything(int(cfg.seed))
     agent = agents.get(cfg.algo.name)
     obs_keys = list(cfg.obs_keys or cfg.env.sensors)
     total = int(cfg.total_frames)
     device = torch.device(str(cfg.device))
 
-    env = make_train_env(cfg)
+    env = make_train_env(worker_config(cfg, workers))  # with workers: one worker's cars (specs and the pipeline record only)
     actor, critic, loss = make_networks(cfg, agent, env, obs_keys, device)
     policy = agent.make_exploration(cfg.algo, actor, env, obs_keys)
     optim = agent.make_optimizers(cfg.algo, loss)
-    cars = max(1, env.batch_size.numel())
-    collector = StepCollector(env, policy, cars * int(cfg.algo.rollout_steps))
+    cars = max(1, env.batch_size.numel()) * max(1, workers)
+    collector = make_rollout_collector(cfg, env, policy, workers, threads)
     eval_envs = make_eval_envs(cfg)
     eval_policy = TensorDictModule(actor, in_keys=obs_keys, out_keys=["action"]) if device.type == "cpu" else \
         DeviceActorModule(actor, obs_keys, ["action"], device)  # the mean action (CPU envs, actor on device)
@@ -76,6 +86,7 @@ def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
                  env=env, eval_envs=eval_envs, threads=threads)
     if cfg.checkpoint.resume:
         counters = _resume(counters=None, run_dir=run_dir, **state)
+        collector.update_policy_weights_()  # worker processes: they act with the restored weights and statistics
     loggers = make_loggers(cfg.logger["backends"], run_dir, cfg.logger.exp_name, cfg.logger.wandb_project, cfg.logger.wandb_mode)
     progress = Progress(total, enabled=bool(cfg.progress))
     print(f"[torcsrl] training ppo on env={cfg.env.name} ({cars} cars) for {total} steps; outputs in {run_dir}", file=sys.stderr)
@@ -113,13 +124,15 @@ def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
                 for start in range(0, n, minibatch):
                     last = agent.update(hot, loss, optim, None, shuffled[start:start + minibatch], counters.updates)
                     counters.updates += 1
-            # the observation statistics take in the batch (for the next rollout and update)
+            # the observation statistics take in the batch (for the next rollout and update); the worker processes'
+            # policies get the new weights and statistics before they collect again
             for enc in encoders:
                 enc.update_norm(*[data.get(k) for k in obs_keys])
+            collector.update_policy_weights_()
 
             # log
             if counters.frames >= counters.next_log:
-                window.log(loggers, progress, counters, last)
+                window.log(loggers, progress, counters, last, **({"time/worker_cpu_s": collector.cpu_s()} if workers else {}))
                 while counters.next_log <= counters.frames:
                     counters.next_log += int(cfg.logger.every_frames)
 
@@ -140,6 +153,7 @@ def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         progress.update(counters.frames, window.steps_per_s(counters), force=True)
     finally:
         progress.close()
+        collector.shutdown()
         for e in (env, *eval_envs.values()):
             if not e.is_closed:
                 e.close()
@@ -157,6 +171,80 @@ def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     return result
 
 
+def worker_config(cfg: DictConfig, workers: int) -> DictConfig:
+    """``cfg`` with ``env.num_cars`` the cars of ONE of ``workers`` worker processes (``cfg`` itself without workers):
+    ``env.num_cars`` stays the total, split evenly (a ValueError in one line when it does not divide;
+    :func:`torcsrl.config.validate` refuses it before that)."""
+    if workers < 1:
+        return cfg
+    cars = int(cfg.env.get("num_cars") or 1)
+    if cars % workers:
+        raise ValueError(f"collector.num_workers={workers}: algo=ppo splits env.num_cars={cars} cars evenly over the worker processes; "
+                         f"allowed: a divisor of {cars} ({', '.join(str(d) for d in range(1, cars + 1) if cars % d == 0)}), or 0")
+    return OmegaConf.merge(cfg, {"env": {"num_cars": cars // workers}})
+
+
+def _worker_env(cfg: DictConfig, worker: int) -> EnvBase:
+    """Worker ``worker``'s env, built in its process: :func:`~torcsrl.train.make_train_env` (seed ``seed + 1000 (worker + 1)``),
+    after seeding the process's torch generator (the policy's action draws) with the same seed."""
+    torch.manual_seed(int(cfg.seed) + 1000 * (worker + 1))
+    return make_train_env(cfg, worker)
+
+
+class WorkerRollouts:
+    """PPO's batches from worker processes: TorchRL's ``MultiSyncCollector`` over ``workers`` batched envs of
+    ``env.num_cars / workers`` cars, each collecting ``rollout_steps`` steps of its cars with the current policy, the
+    batches of the workers joined along the cars: ``[num_cars, rollout_steps]`` (worker 0's cars first), as the
+    in-process :class:`~torcsrl.utils.collector.StepCollector` gives them, so GAE runs along time per car.
+
+    :meth:`update_policy_weights_` gives the workers the learner policy's parameters AND buffers (the observation
+    statistics of :class:`~torcsrl.nets.RunningNorm`): TorchRL's shared-memory weight sync copies them into the shared
+    buffers and waits for each worker to apply them. The loop calls it after every update (and after a resume), and
+    the workers collect only when asked (``MultiSyncCollector``), so every rollout is collected with the weights of the
+    update before it, as in one process."""
+
+    def __init__(self, collector: MultiSyncCollector):
+        self.collector = collector
+        self._batches = None
+
+    def __iter__(self):
+        self._batches = iter(self.collector)
+        return self
+
+    def __next__(self) -> TensorDictBase:
+        data = next(self._batches)  # [workers, cars a worker, T]; one car a worker: [workers, T]
+        data.names = None
+        return data.flatten(0, 1) if data.ndim == 3 else data
+
+    def update_policy_weights_(self) -> None:
+        self.collector.update_policy_weights_()
+
+    def cpu_s(self) -> float:
+        """CPU seconds the worker processes have used so far (summed; ``time/worker_cpu_s`` in the logs)."""
+        return sum(process_cpu_s(p.pid) for p in self.collector.procs)
+
+    def worker_policy_states(self) -> list[dict]:
+        """The ``state_dict()`` of each worker's policy, as the workers hold it (tests, checks)."""
+        return self.collector.map_fn("policy.state_dict")
+
+    def shutdown(self) -> None:
+        self.collector.shutdown()
+
+
+def make_rollout_collector(cfg: DictConfig, env: EnvBase, policy, workers: int, threads: int) -> StepCollector | WorkerRollouts:
+    """Batches of ``algo.rollout_steps`` steps of every car: in this process (:class:`StepCollector` on ``env``,
+    ``collector.num_workers=0``) or from ``workers`` processes (:class:`WorkerRollouts`; ``env`` is then one worker's env,
+    built here for its specs). This process keeps its ``threads`` torch threads; each worker runs one."""
+    steps_per_car = int(cfg.algo.rollout_steps)
+    per_env = max(1, env.batch_size.numel()) * steps_per_car
+    if workers < 1:
+        return StepCollector(env, policy, per_env)
+    wcfg = worker_config(cfg, workers)
+    fns = [functools.partial(_worker_env, wcfg, i) for i in range(workers)]
+    return WorkerRollouts(MultiSyncCollector(fns, policy, frames_per_batch=per_env * workers, total_frames=-1, cat_results="stack",
+                                             exploration_type=ExplorationType.RANDOM, num_threads=threads, num_sub_threads=1))
+
+
 def _save(cfg, ckpt_dir, meta, counters, loss, actor, critic, optim, collector, env, eval_envs, threads) -> Path:
     path = checkpoint_path(ckpt_dir, counters.frames)
     save_checkpoint(path, {
@@ -167,7 +255,8 @@ def _save(cfg, ckpt_dir, meta, counters, loss, actor, critic, optim, collector, 
         "critic": critic.state_dict(),
         "optim": {k: o.state_dict() for k, o in optim.items()},
         "rng": rng_state(),
-        "collector": {"state": collector.state_dict(), "env": _sim_state(env)},
+        # worker processes: their in-flight episodes are not kept (a resumed run restarts them), as for the off-policy loop
+        "collector": {} if isinstance(collector, WorkerRollouts) else {"state": collector.state_dict(), "env": _sim_state(env)},
         "eval_envs": {name: _sim_state(e) for name, e in eval_envs.items()},
         "buffer_dir": None,
         "threads": threads,
@@ -197,7 +286,10 @@ def _resume(cfg, ckpt_dir, meta, counters, loss, actor, critic, optim, collector
     critic.load_state_dict(ck["critic"])
     for k, o in optim.items():
         o.load_state_dict(ck["optim"][k])
-    if ck["collector"]["env"] is not None:
+    if isinstance(collector, WorkerRollouts) or not ck["collector"]:
+        print("[torcsrl] resuming with (or from) worker processes: the in-flight episodes restart "
+              "(exact resume needs collector.num_workers=0 before and after)", file=sys.stderr)
+    elif ck["collector"]["env"] is not None:
         collector.load_state_dict(ck["collector"]["state"])
         _set_sim_state(env, ck["collector"]["env"])
     else:

@@ -11,7 +11,9 @@ Metric names are namespaced (glossary):
 * ``time/steps_per_s`` env steps per wall-clock second over the last logging window (collection
   and updates together); ``time/updates_per_s``; ``time/elapsed_s`` wall-clock seconds since the
   run (or resume) started; ``time/cpu_s`` CPU seconds this process used in that time (all its
-  threads: on a shared box, steps per CPU-second compare implementations better than steps/s).
+  threads: on a shared box, steps per CPU-second compare implementations better than steps/s);
+  ``time/worker_cpu_s`` CPU seconds the collector's worker processes used since they started (PPO with
+  ``collector.num_workers`` >= 1; ``time/cpu_s`` leaves them out).
 
 Backends (``logger.backends``): ``csv`` (TorchRL's CSVLogger; one file per metric under
 ``<run_dir>/logs/<exp>/scalars/``), ``tensorboard`` (only when installed; otherwise a one-line

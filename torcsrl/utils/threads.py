@@ -55,3 +55,15 @@ def configure_threads(threads: int | str, env_workers: int = 0) -> int:
     except RuntimeError:  # already set once in this process
         pass
     return n
+
+
+def process_cpu_s(pid: int) -> float:
+    """CPU seconds (user + system) that process ``pid`` has used so far, from ``/proc/<pid>/stat``; 0.0 where that cannot
+    be read (not Linux, the process has ended). For the CPU time of worker processes, which ``time.process_time`` of
+    their parent does not include (nor ``RUSAGE_CHILDREN`` while they run)."""
+    try:
+        with open(f"/proc/{int(pid)}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime (fields 14, 15 of stat)
+    except (OSError, ValueError, IndexError):
+        return 0.0

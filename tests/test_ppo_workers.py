@@ -1,0 +1,94 @@
+"""PPO's rollouts from worker processes (``algo=ppo collector.num_workers=W``): the batch the loop gets, the weights and
+observation statistics the workers act with after a sync, a smoke run through train(cfg), the one-line refusal of a car
+count the workers cannot share."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from torcsrl import agents
+from torcsrl.config import ConfigError, validate
+from torcsrl.onpolicy import WorkerRollouts, make_rollout_collector, worker_config
+from torcsrl.train import make_networks, make_train_env, train
+from torcsrl.utils.logging import read_csv_metric
+
+ROOT = Path(__file__).resolve().parents[1]
+PPO = ["env=toy", "debug=smoke", "algo=ppo", "algo.rollout_steps=20", "algo.epochs=2", "algo.batch_size=32"]
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    torch.set_num_threads(1)
+
+
+def cfg_for(*overrides: str):
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        return compose("train", overrides=[*PPO, *overrides])
+
+
+def test_two_workers_give_one_batch_of_all_cars_and_act_with_the_learners_weights_and_statistics(tmp_path):
+    cfg = cfg_for("env.num_cars=4", "collector.num_workers=2", f"run_dir={tmp_path}")
+    torch.manual_seed(0)
+    env = make_train_env(worker_config(cfg, 2))  # one worker's env: 2 cars
+    assert tuple(env.batch_size) == (2,)
+    agent, keys = agents.get("ppo"), list(cfg.env.sensors)
+    actor, critic, _ = make_networks(cfg, agent, env, keys, torch.device("cpu"))
+    policy = agent.make_exploration(cfg.algo, actor, env, keys)
+    rng = torch.get_rng_state()
+    collector = make_rollout_collector(cfg, env, policy, 2, 1)
+    assert isinstance(collector, WorkerRollouts)
+    assert torch.equal(torch.get_rng_state(), rng)  # the workers seed their own generators, not the learner's
+    try:
+        batches = iter(collector)
+        data = next(batches)
+        assert tuple(data.batch_size) == (4, 20)  # [cars, time], worker 0's cars first: GAE runs along time per car
+        assert data.get("action_log_prob").shape == (4, 20) and data.get(("next", "episode_reward")).shape == (4, 20, 1)
+        obs = data.get("rangefinder")
+        assert not torch.equal(obs[:2], obs[2:])  # the workers' envs have their own seeds
+        # the learner moves its weights and its observation statistics; the workers see both after the sync
+        actor.encoder.update_norm(*[data.get(k) for k in keys])
+        with torch.no_grad():
+            for p in actor.parameters():
+                p.add_(0.01)
+        mine = policy.state_dict()
+        norm = [k for k in mine if k.endswith("norm.count")]
+        assert norm and float(mine[norm[0]]) == 80
+        collector.update_policy_weights_()
+        for state in collector.worker_policy_states():
+            assert set(state) == set(mine)
+            for k, v in mine.items():
+                torch.testing.assert_close(state[k], v, rtol=0, atol=0, msg=k)
+        assert tuple(next(batches).batch_size) == (4, 20)  # and collect again
+    finally:
+        collector.shutdown()
+        env.close()
+
+
+def test_ppo_smoke_run_with_two_workers_and_its_resume(tmp_path):
+    """One car a worker (each worker's env has no batch dim): the loop still gets [cars, T]. A resumed run carries on
+    from the checkpoint (networks, statistics, counters; the workers' episodes restart)."""
+    ov = ["env.num_cars=2", "collector.num_workers=2", "logger.every_frames=40", "checkpoint.every_frames=40", f"run_dir={tmp_path}"]
+    r = train(cfg_for(*ov, "total_frames=80"))
+    assert r["frames"] == 80 and r["updates"] == 2 * 2 * 2  # 2 batches of 2 cars x 20 steps, 2 epochs of 40 / 32 -> 2
+    ck = torch.load(r["checkpoint"], weights_only=False)
+    assert float(ck["actor"]["encoder.norm.count"]) == 80 and ck["collector"] == {}
+    r = train(cfg_for(*ov, "total_frames=160", "checkpoint.resume=latest"))
+    assert r["frames"] == 160 and r["updates"] == 4 * 2 * 2
+    rows = read_csv_metric(tmp_path, "loss/critic")
+    assert [s for s, _ in rows] == [40, 80, 120, 160] and all(math.isfinite(v) for _, v in rows)
+    assert float(torch.load(r["checkpoint"], weights_only=False)["actor"]["encoder.norm.count"]) == 160
+
+
+def test_a_car_count_the_workers_cannot_share_is_refused_in_one_line():
+    with pytest.raises(ConfigError) as err:
+        validate(cfg_for("env.num_cars=6", "collector.num_workers=4"))
+    msg = str(err.value)
+    assert msg.count("\n") == 0
+    assert "collector.num_workers=4: algo=ppo splits env.num_cars=6 cars evenly over the worker processes; allowed: a divisor of 6 " \
+           "(1, 2, 3, 6), or 0" in msg
+    validate(cfg_for("env.num_cars=6", "collector.num_workers=3"))  # a divisor passes
