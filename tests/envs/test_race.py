@@ -367,6 +367,44 @@ def test_scalar_and_vectorised_locate_agree():
     core.close()
 
 
+@pytest.mark.parametrize("track", ["kidney", ["hairpins", "oval", "rallycross"]])
+def test_vectorised_locate_equals_the_plain_python_one(track):
+    """RaceCore._locate_walk (the chord walk vectorised over the cars) writes the bits _locate_scalar writes, wheel
+    surfaces included, and when a car's walk fails it returns None having written what the scalar loop wrote
+    (the cars before the first failing one, and that car's own point if it settled)."""
+    core = RaceCore(track=track, num_cars=24, seed=1)
+    core.reset()
+    rng = np.random.default_rng(2)
+    n, fails = core.n, 0
+    for rep in range(40):
+        tr = core.car_tracks
+        s = np.array([rng.uniform(0.0, t.length) for t in tr])
+        s[:2] = [0.0, tr[1].length - 1e-9]  # on the start line
+        d = rng.uniform(-1.0, 1.0, n) * [0.0, 3.0, 10.0, 40.0][rep % 4]
+        xy = np.stack([t.to_world(s[i], d[i]) for i, t in enumerate(tr)])
+        wheels = xy[:, None, :] + rng.normal(0.0, 1.5, (n, 4, 2))
+        yaw = rng.uniform(-math.pi, math.pi, n)
+        chord = np.array([(int(t._locate(s[i])[0]) + int(rng.integers(-5, 6))) % len(t) for i, t in enumerate(tr)])
+        if rep % 5 == 0:
+            chord[rng.integers(0, n, 3)] = 7  # far chords: some walks fail
+        out = []
+        for f in (core._locate_scalar, core._locate_walk):
+            core.chord[:] = chord
+            for a in (core.s, core.d, core.track_pos, core.angle):
+                a[:] = -9.0
+            ids = f(xy, wheels, yaw)
+            out.append([ids] + [a.copy() for a in (core.s, core.d, core.chord, core.track_pos, core.angle)])
+        (ia, *a), (ib, *b) = out
+        assert (ia is None) == (ib is None), rep
+        fails += ia is None
+        if ia is not None:
+            assert np.array_equal(ia, ib)
+        for u, v in zip(a, b):
+            assert u.tobytes() == v.tobytes(), rep
+    assert 0 < fails < 40
+    core.close()
+
+
 def test_laps_count_full_laps_driven_and_times_run_line_to_line():
     """After a random start, crossing the line is not a lap: ``lap`` counts full lengths driven;
     lap times run from one line crossing to the next (the partial first lap is untimed)."""

@@ -36,8 +36,12 @@ from torcsrl.envs.vehicle import CarFleet, VehicleParams, make_ground
 
 ACTION_MODES = ("combined", "separate")
 START_MODES = ("grid", "random")
-#: Up to this many cars, cars are followed along their tracks in plain Python (faster there).
+#: Up to this many cars, cars are followed along their tracks chord by chord (the exact walk of
+#: :meth:`Track.track_point`); beyond, located by the windowed vectorised projection.
 SCALAR_LOCATE_MAX_CARS = 8
+#: Up to this many cars the walk runs car by car in plain Python; beyond, vectorised over the cars
+#: (:meth:`Track.track_points`, the same numbers).
+PYTHON_WALK_MAX_CARS = 4
 #: Distance between the world origins of the tracks of one env [m].
 TRACK_SPACING_M = 10_000.0
 #: Keys of the per-car bookkeeping reported in ``info`` (TORCS names; SI units).
@@ -557,7 +561,8 @@ class RaceCore:
         pos = fleet.pos[:, :2] - origin  # in each car's track frame
         wheels = fleet.wheel_xy - origin[:, None, :]  # [N, 4, 2]
         if self.n <= self.scalar_locate_max_cars:
-            ids = self._locate_scalar(pos, wheels, fleet.yaw)
+            walk = self._locate_scalar if self.n <= PYTHON_WALK_MAX_CARS else self._locate_walk
+            ids = walk(pos, wheels, fleet.yaw)
             if ids is not None:
                 fleet.set_wheel_surfaces(ids)
                 return
@@ -600,6 +605,54 @@ class RaceCore:
                 w_l, w_r, _, sid = t.frame_at(rw[2], rw[3])
                 ids[i, k] = sid if -w_r <= rw[1] <= w_l else grass
         return ids
+
+    def _locate_walk(self, pos: np.ndarray, wheels: np.ndarray, yaw: np.ndarray) -> np.ndarray | None:
+        """:meth:`_locate_scalar` vectorised over the cars (:meth:`Track.track_points`): the same numbers, bit for
+        bit, and the same side effects when a walk fails (the cars before the first failing one, and that car's own
+        point if it settled, are written; then ``None``)."""
+        n = self.n
+        s_new, d_new, tp_new, ang_new = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
+        ch_new = np.zeros(n, dtype=np.int64)
+        car_ok = np.zeros(n, dtype=bool)
+        all_ok = np.zeros(n, dtype=bool)
+        ids = np.empty((n, 4), dtype=np.int64)
+        tracks = self.car_tracks
+        first = tracks[0]
+        groups = [np.arange(n)] if all(t is first for t in tracks) else \
+            [np.flatnonzero([t is u for t in tracks]) for u in {id(t): t for t in tracks}.values()]
+        pi, two_pi = math.pi, 2.0 * math.pi
+        for g in groups:
+            t = tracks[g[0]]
+            tab = t._walk_table()
+            wl_, dwl = t.w_left, t._delta(t.w_left)
+            wr_, dwr = t.w_right, t._delta(t.w_right)
+            s, d, ch, u, ok = t.track_points(pos[g, 0], pos[g, 1], self.chord[g])
+            row = tab[ch]
+            nx = row[:, 4] + u * row[:, 6]
+            ny = row[:, 5] + u * row[:, 7]
+            heading = np.fromiter(map(math.atan2, (-nx).tolist(), ny.tolist()), dtype=np.float64, count=len(g))
+            wl = wl_[ch] + u * dwl[ch]
+            wr = wr_[ch] + u * dwr[ch]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                tp = np.where(d >= 0.0, d / wl, d / wr)
+            s_new[g], d_new[g], ch_new[g], tp_new[g] = s, d, ch, tp
+            ang_new[g] = (yaw[g] - heading + pi) % two_pi - pi
+            car_ok[g] = ok
+            # the wheels walk from their car's chord
+            rs, rd, rc, ru, rok = t.track_points(wheels[g, :, 0], wheels[g, :, 1], np.repeat(ch, 4))
+            w_l = wl_[rc] + ru * dwl[rc]
+            w_r = wr_[rc] + ru * dwr[rc]
+            ids[g] = np.where((-w_r <= rd) & (rd <= w_l), t.surface_ids[rc], _surf.GRASS_ID).reshape(-1, 4)
+            all_ok[g] = ok & rok.reshape(-1, 4).all(axis=1)
+        if all_ok.all():
+            self.s[:], self.d[:], self.chord[:], self.track_pos[:], self.angle[:] = s_new, d_new, ch_new, tp_new, ang_new
+            return ids
+        f = int(np.argmin(all_ok))  # the first car whose walk failed: the scalar loop wrote the cars before it
+        w = np.arange(n) < f
+        w[f] = car_ok[f]
+        for a, v in ((self.s, s_new), (self.d, d_new), (self.chord, ch_new), (self.track_pos, tp_new), (self.angle, ang_new)):
+            a[w] = v[w]
+        return None
 
     def _laps(self) -> None:
         """``lap``: full laps driven since the start (``distRaced // length``; from the grid, the

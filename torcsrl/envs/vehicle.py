@@ -70,9 +70,11 @@ from __future__ import annotations
 import bisect
 import dataclasses
 import math
+from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from importlib import resources
+from itertools import chain
 from typing import Any
 
 import numpy as np
@@ -350,6 +352,14 @@ GROUND_MODELS = ("plane", "raycast")
 _MISS = (-1, -1, 9.0)  # a suspension ray that meets no ground (read as far below)
 
 
+_flat = chain.from_iterable
+
+
+def _consume(calls) -> None:
+    """Run an iterator of calls for their effects (``map`` over a C function: no Python frame per call)."""
+    deque(calls, maxlen=0)
+
+
 def _plane_hits(z_from: np.ndarray, z_to: np.ndarray) -> np.ndarray:
     """Hit fractions of rays from height ``z_from`` to ``z_to`` [m] with the plane z = 0 (either
     face, as bullet's ray test); 9.0 (far below: no spring force) where a ray does not reach it."""
@@ -472,6 +482,8 @@ class CarFleet:
         #: car-car contact impulses of the last control step [N s], ``[N, N]`` (see :meth:`track_contacts`); None: off
         self.contact_impulse: np.ndarray | None = None
         self._body_index = {b: i for i, b in enumerate(self.bodies)}
+        # per-car argument columns of the batched pybullet calls (map over C functions)
+        self._cids, self._links, self._world_frames = [self.client] * self.n, [-1] * self.n, [p.WORLD_FRAME] * self.n
         n = self.n
         # per-car dynamic state; after a step these are new arrays (never modified in place)
         self._omega = np.zeros((n, 4))  # [rad/s] wheel spin
@@ -673,9 +685,11 @@ class CarFleet:
     def _read_state(self) -> None:
         """numpy backend: read every car's pose and velocity once and derive the cached frames."""
         cid, n = self.client, self.n
-        gp, gv = p.getBasePositionAndOrientation, p.getBaseVelocity
-        # one row per car: position (3), quaternion xyzw (4), linear (3) and angular (3) velocity
-        raw = np.array([sum(gp(b, physicsClientId=cid) + gv(b, physicsClientId=cid), ()) for b in self.bodies])
+        cids = self._cids
+        # one row per car: position (3), quaternion xyzw (4), linear (3) and angular (3) velocity; read car by car
+        # (pose, then velocity) and flattened in C (map, chain, fromiter: no Python frame per car)
+        parts = zip(map(p.getBasePositionAndOrientation, self.bodies, cids), map(p.getBaseVelocity, self.bodies, cids))
+        raw = np.fromiter(_flat(_flat(_flat(parts))), dtype=np.float64, count=13 * n).reshape(n, 13)
         self._raw = raw
         quat = raw[:, 3:7]
         rot = ((quat[:, :, None] * quat[:, None, :]).reshape(n, 16) @ _QM + _QC).reshape(n, 3, 3)  # body -> world
@@ -908,11 +922,11 @@ class CarFleet:
         f_ground = ((g * sx + 1j * (g * sy)) * rot).conj()  # (fx - i fy) in the ground frame
         forces = (f_ground[:, :, None] * ground_xy[:, None, :]).real + fz[:, :, None] * self._rot[:, None, 2, :]
         wrench = forces.reshape(n, 12) @ self._jac + aero
-        world = np.matmul(wrench.reshape(n, 2, 3), self._rot.transpose(0, 2, 1)).tolist()  # (R f, R tau)
-        pos = self._raw[:, 0:3].tolist()
-        for i, b in enumerate(self.bodies):
-            p.applyExternalForce(b, -1, world[i][0], pos[i], p.WORLD_FRAME, physicsClientId=cid)
-            p.applyExternalTorque(b, -1, world[i][1], p.WORLD_FRAME, physicsClientId=cid)
+        world = np.matmul(wrench.reshape(n, 2, 3), self._rot.transpose(0, 2, 1))  # (R f, R tau)
+        # every car's force, then every car's torque (each body accumulates its own: the same sums as car by car)
+        bodies, links, frames, cids = self.bodies, self._links, self._world_frames, self._cids
+        _consume(map(p.applyExternalForce, bodies, links, world[:, 0].tolist(), self._raw[:, 0:3].tolist(), frames, cids))
+        _consume(map(p.applyExternalTorque, bodies, links, world[:, 1].tolist(), frames, cids))
         p.stepSimulation(physicsClientId=cid)
         if self.contact_impulse is not None:
             self._collect_contacts()
