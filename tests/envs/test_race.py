@@ -405,6 +405,58 @@ def test_vectorised_locate_equals_the_plain_python_one(track):
     core.close()
 
 
+def test_wrap_deltas_is_each_tracks_wrap_delta_bit_for_bit():
+    from torcsrl.envs import tracks
+    from torcsrl.envs.race import wrap_deltas
+
+    ts = [tracks.load(name) for name in ("kidney", "oval", "hairpins")]
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        tr = [ts[i] for i in rng.integers(0, 3, 64)]
+        lengths = np.array([t.length for t in tr])
+        s_old = rng.uniform(0.0, 1.0, 64) * lengths
+        s = np.mod(s_old + rng.normal(0.0, 5.0, 64) + rng.choice([0.0, 1e-12, 0.5], 64) * lengths, lengths)
+        s[:3] = [0.0, lengths[1] - 1e-9, s_old[2]]
+        want = np.array([t.wrap_delta(s[i], s_old[i]) for i, t in enumerate(tr)])
+        assert wrap_deltas(s, s_old, lengths).tobytes() == want.tobytes()
+
+
+def test_cars_per_world_drive_as_in_one_world_and_resume_exactly():
+    """cars_per_world deals the cars over several pybullet worlds: the same episodes, bit for bit, as one world;
+    get_state / set_state carry every world."""
+    kw = dict(track="kidney", num_cars=5, start="random", spawn_jitter=(2.0, 0.2), seed=3)
+    one, split = RaceCore(**kw), RaceCore(**kw, cars_per_world=2)
+    assert len(split.fleet.clients) == 3 and len(one.fleet.clients) == 1
+    rng = np.random.default_rng(0)
+    actions = rng.uniform(-1.0, 1.0, (40, 5, 2))
+    actions[:, :, 1] = np.abs(actions[:, :, 1])
+    saved = None
+    for core in (one, split):
+        core.reset()
+    for k, a in enumerate(actions):
+        for core in (one, split):
+            core.step(a)
+        assert one.fleet._raw.tobytes() == split.fleet._raw.tobytes(), k
+        assert one.s.tobytes() == split.s.tobytes() and one.obs["rangefinder"].tobytes() == split.obs["rangefinder"].tobytes()
+        if k == 19:
+            saved = split.get_state()
+            assert len(saved["more_worlds"]) == 2
+    twin = RaceCore(**kw, cars_per_world=2)
+    twin.reset()
+    twin.set_state(saved)
+    for a in actions[20:]:
+        twin.step(a)
+    assert twin.fleet._raw.tobytes() == split.fleet._raw.tobytes() and twin.rewards.tobytes() == split.rewards.tobytes()
+    with pytest.raises(ValueError, match="pybullet worlds"):
+        one.set_state(saved)
+    for core in (one, split, twin):
+        core.close()
+    with pytest.raises(ValueError, match="one world"):
+        RaceCore(track="oval", num_cars=2, cars_per_world=1, sensors=("state", "pixels"))
+    with pytest.raises(ValueError, match="cars_per_world"):
+        RaceCore(track="oval", num_cars=2, cars_per_world=0)
+
+
 def test_laps_count_full_laps_driven_and_times_run_line_to_line():
     """After a random start, crossing the line is not a lap: ``lap`` counts full lengths driven;
     lap times run from one line crossing to the next (the partial first lap is untimed)."""

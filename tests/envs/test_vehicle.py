@@ -412,6 +412,51 @@ def test_backends_agree_and_are_deterministic():
     assert np.abs(a - b).max() > 1.0  # the options do change the dynamics
 
 
+def test_cars_dealt_over_several_worlds_move_as_in_one_world():
+    """A fleet over several pybullet clients gives the bits of the same fleet in one client: each car's body is
+    integrated alone (no contacts between cars), only the collision broadphase is split."""
+    n = 12
+
+    def run(k: int) -> np.ndarray:
+        worlds = [World() for _ in range(k)]
+        try:
+            f = CarFleet([w.client for w in worlds] if k > 1 else worlds[0].client, n, backend="numpy",
+                         control_hz=10.0, substeps=20)
+            assert f.clients == [w.client for w in worlds]
+            rng = np.random.default_rng(0)
+            f.reset(np.arange(n), rng.normal(0.0, 0.5, (n, 2)), rng.normal(0.0, 0.1, n), rng.uniform(5.0, 30.0, n))
+            out = []
+            for k_ in range(25):
+                f.step(rng.uniform(-1, 1, n), rng.uniform(0, 1, n), rng.uniform(0, 1, n) * (k_ % 5 == 0))
+                out.append(np.concatenate([f._raw.ravel(), f.wheel_omega.ravel(), f.wheel_load.ravel(), f.rpm]))
+            return np.array(out)
+        finally:
+            for w in worlds:
+                w.close()
+
+    one = run(1)
+    for k in (2, 5):
+        assert run(k).tobytes() == one.tobytes(), k
+
+
+def test_several_worlds_refuse_what_needs_one():
+    worlds = [World() for _ in range(2)]
+    try:
+        ids = [w.client for w in worlds]
+        for kw, n in (({"backend": "python"}, 4), ({"collide": True}, 4), ({"ground": "raycast"}, 4), ({}, 1)):
+            with pytest.raises(ValueError):
+                CarFleet(ids, n, **kw)
+        f = CarFleet(ids, 3)
+        assert f.backend == "numpy" and f._cids == [ids[0], ids[0], ids[1]]
+        with pytest.raises(ValueError, match="cannot collide"):
+            f.set_collide(True)
+        with pytest.raises(ValueError, match="one world"):
+            f.track_contacts(True)
+    finally:
+        for w in worlds:
+            w.close()
+
+
 @pytest.mark.parametrize("backend", ["numpy", "python"])
 def test_closed_form_ground_matches_pybullet_ray_test(backend):
     """ground="plane" (closed-form suspension rays) gives pybullet's ray-test trajectory, also for

@@ -51,6 +51,13 @@ INFO_KEYS: tuple[str, ...] = ("distFromStart", "distRaced", "lap", "curLapTime",
 TERMINATION_REASONS: tuple[str, ...] = ("", "off_track", "backwards", "no_progress", "flipped")
 
 
+def wrap_deltas(s_new: np.ndarray, s_old: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """:meth:`Track.wrap_delta` of each car on its own track (lap lengths ``lengths``), vectorised: the same
+    operations elementwise, so each entry has the bits ``car_tracks[i].wrap_delta(s_new[i], s_old[i])`` has."""
+    half = 0.5 * lengths
+    return np.mod(s_new - s_old + half, lengths) - half
+
+
 def _as_list(x) -> list:
     if x is None:
         return [None]
@@ -120,6 +127,10 @@ class RaceCore:
             generated tracks (seeds drawn from ``[lo, hi)`` by a stream seeded with ``seed``); each
             episode drives a pool track with probability ``share``, else a named track
             (:mod:`torcsrl.envs.tracks.procedural`). ``None``: named tracks only.
+        cars_per_world: ``None`` (default): every car in one pybullet world; a number: the cars dealt over
+            ``ceil(n / cars_per_world)`` worlds (:class:`~torcsrl.envs.vehicle.CarFleet`; each car moves as it
+            would in one world, and a world's collision broadphase sorts through its own cars only: many cars
+            on one line are cheaper). Not with traffic or a camera.
         seed: seed of the env's random generator (tracks, surfaces, spawn).
     """
 
@@ -152,6 +163,7 @@ class RaceCore:
         camera: Mapping[str, Any] | None = None,
         procedural: Mapping[str, Any] | None = None,
         traffic: Mapping[str, Any] | None = None,
+        cars_per_world: int | None = None,
         seed: int | None = None,
     ) -> None:
         self.sensors = check_sensors(sensors)
@@ -194,10 +206,21 @@ class RaceCore:
         self.action_mode = action_mode
         self.action_dim = 2 if action_mode == "combined" else 3
 
+        worlds = 1
+        if cars_per_world is not None:
+            if isinstance(cars_per_world, bool) or int(cars_per_world) != cars_per_world or cars_per_world < 1:
+                raise ValueError(f"cars_per_world must be a positive integer or None, got {cars_per_world!r}")
+            worlds = -(-self.n // int(cars_per_world))
+            if worlds > 1 and (self.traffic_spec is not None or "pixels" in self.sensors or "depth" in self.sensors):
+                raise ValueError("cars_per_world: a race (traffic) and the camera need every car in one world")
         self.client = p.connect(p.DIRECT)
-        make_ground(self.client)
+        #: the other pybullet worlds of the cars (cars_per_world), each with its ground
+        self._more_clients = [p.connect(p.DIRECT) for _ in range(worlds - 1)]
+        for c in (self.client, *self._more_clients):
+            make_ground(c)
         params = VehicleParams.load(vehicle, overrides=dict(vehicle_overrides) if vehicle_overrides else None)
-        self.fleet = CarFleet(self.client, self.n, params, control_hz=control_hz, substeps=substeps)
+        self.fleet = CarFleet([self.client, *self._more_clients] if worlds > 1 else self.client, self.n, params,
+                              control_hz=control_hz, substeps=substeps)
         self.dt = self.fleet.dt_control
         self.traffic: Traffic | None = None
         self._group_offset = np.zeros((self.n, 2))
@@ -389,19 +412,22 @@ class RaceCore:
 
     # ------------------------------------------------------------------ exact resume
     def get_state(self) -> dict[str, Any]:
-        """Every piece of dynamic state, for an exact resume on CPU: the pybullet world (bodies'
+        """Every piece of dynamic state, for an exact resume on CPU: the pybullet world(s) (bodies'
         poses and velocities, as ``saveBullet`` bytes), the cars' drivetrain state, each car's
         track and surface, the episode books, the last observation, the camera's held frames and
         the generator.
         :meth:`set_state` on a core built with the same arguments continues bit for bit."""
+        worlds = []
         with tempfile.TemporaryDirectory() as tmp:
             f = os.path.join(tmp, "world.bullet")
-            p.saveBullet(f, physicsClientId=self.client)
-            world = np.fromfile(f, dtype=np.uint8)
+            for c in (self.client, *self._more_clients):
+                p.saveBullet(f, physicsClientId=c)
+                worlds.append(np.fromfile(f, dtype=np.uint8))
+        world = worlds[0]
+        extra: dict[str, Any] = {"more_worlds": worlds[1:]} if self._more_clients else {}
         books = {k: np.array(getattr(self, k), copy=True) for k in _BOOK_FIELDS}
-        extra = {}
         if self.traffic is not None:
-            extra = {"traffic": self.traffic.get_state(), "start_back": self.start_back.copy(),
+            extra = {**extra, "traffic": self.traffic.get_state(), "start_back": self.start_back.copy(),
                      "obs_all": {k: v.copy() for k, v in self._obs_all.items()}}
         return {**extra, "world": world, "fleet": self.fleet.get_state(), "books": books,
                 "surface_pick": list(self.surface_pick), "obs": {k: v.copy() for k, v in self.obs.items()},
@@ -416,10 +442,14 @@ class RaceCore:
         if self.camera is not None:  # build the visual worlds the saved client had, in its order
             for k in state.get("camera_slots", []):
                 self.camera.world(int(k))
+        more = state.get("more_worlds", [])
+        if len(more) != len(self._more_clients):
+            raise ValueError(f"saved state holds {1 + len(more)} pybullet worlds; this env has {1 + len(self._more_clients)}")
         with tempfile.TemporaryDirectory() as tmp:
             f = os.path.join(tmp, "world.bullet")
-            np.asarray(state["world"], dtype=np.uint8).tofile(f)
-            p.restoreState(fileName=f, physicsClientId=self.client)
+            for c, w in zip((self.client, *self._more_clients), (state["world"], *more)):
+                np.asarray(w, dtype=np.uint8).tofile(f)
+                p.restoreState(fileName=f, physicsClientId=c)
         for k in _BOOK_FIELDS:
             setattr(self, k, np.array(books[k], copy=True))
         self.surface_pick = list(state["surface_pick"])
@@ -472,7 +502,7 @@ class RaceCore:
             self._book_one(float(s_old[0]))
             self._observe()
             return
-        progress = np.array([t.wrap_delta(self.s[i], s_old[i]) for i, t in enumerate(self.car_tracks)]) if self.n > 1 \
+        progress = wrap_deltas(self.s, s_old, np.array([t.length for t in self.car_tracks])) if self.n > 1 \
             else self.car_tracks[0].wrap_delta(self.s, s_old)
         self.time += self.dt
         self.steps += 1
@@ -732,11 +762,13 @@ class RaceCore:
         if self.camera is not None and hasattr(self.camera, "close"):
             self.camera.close()
         if self.client is not None:
-            try:
-                p.disconnect(physicsClientId=self.client)
-            except p.error:
-                pass
+            for c in (self.client, *self._more_clients):
+                try:
+                    p.disconnect(physicsClientId=c)
+                except p.error:
+                    pass
             self.client = None
+            self._more_clients = []
 
 
 #: RaceCore's per-car episode books, saved by :meth:`RaceCore.get_state`.

@@ -56,13 +56,13 @@ Conventions
   made of ``substeps`` physics steps (default 4, i.e. 200 Hz; at least 200 Hz is required).
 
 Performance: per physics substep the fleet makes 2N state reads, one ray batch, 2N force calls
-and one ``stepSimulation``; state is read once per substep and cached. Two backends integrate
+and one ``stepSimulation`` per world; state is read once per substep and cached. Two backends integrate
 the same equations (a test checks they agree to rounding): ``"numpy"`` runs a fixed number of
 vectorised operations on ``[N, 4]`` arrays per substep, independent of N, and wins for larger
 fleets; ``"python"`` runs them car by car in floats and wins for a few cars, where numpy's ~1 us
 per call dominates (``backend="auto"`` picks by N). The public state arrays are new arrays after
 every step (never modified in place), so callers may keep them. A fleet owns the stepping of its
-pybullet client: use one fleet per client.
+pybullet clients: use one fleet per client.
 """
 
 from __future__ import annotations
@@ -71,7 +71,7 @@ import bisect
 import dataclasses
 import math
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from importlib import resources
 from itertools import chain
@@ -407,11 +407,17 @@ def _skew(r: np.ndarray) -> np.ndarray:
 # The fleet
 # --------------------------------------------------------------------------------------------
 class CarFleet:
-    """N raycast cars in one pybullet client (see the module docstring for the model).
+    """N raycast cars in one pybullet client, or dealt over several (see the module docstring for the model).
 
     Args:
         client_id: pybullet physics client. The fleet sets gravity and the fixed time step on it
-            and calls ``stepSimulation``: it owns the stepping of that client.
+            and calls ``stepSimulation``: it owns the stepping of that client. A sequence of clients
+            (worlds, each with its own :func:`make_ground`) deals the cars over them in contiguous
+            blocks (car i in world ``i // ceil(N / worlds)``): a car moves in its world exactly as it
+            would in one shared world (the cars never touch each other), while each world's collision
+            broadphase only sorts through its own cars (cars that drive the same line overlap; in one
+            world the cost of the overlapping pairs grows with N^2). Several worlds need the numpy
+            backend, the plane ground and ``collide=False``.
         n_cars: number of cars N (>= 1).
         params: vehicle parameters (default: ``VehicleParams.load("default")``).
         collide: if False (default) cars pass through each other; if True their chassis collide.
@@ -436,7 +442,7 @@ class CarFleet:
 
     def __init__(
         self,
-        client_id: int,
+        client_id: int | Sequence[int],
         n_cars: int,
         params: VehicleParams | None = None,
         collide: bool = False,
@@ -463,8 +469,17 @@ class CarFleet:
         self.ground = ground
         #: "numpy" vectorises each substep over all wheels of all cars; "python" runs the same
         #: equations car by car in floats, faster for a few cars ("auto": python for N <= 4).
-        self.backend = backend if backend != "auto" else ("python" if n_cars <= PYTHON_BACKEND_MAX_CARS else "numpy")
-        self.client = int(client_id)
+        clients = [int(c) for c in client_id] if isinstance(client_id, Sequence) else [int(client_id)]
+        if not 1 <= len(clients) <= n_cars:
+            raise ValueError(f"a fleet of {n_cars} cars needs 1 to {n_cars} clients, got {len(clients)}")
+        several = len(clients) > 1
+        if several and (backend == "python" or ground != "plane" or collide):
+            raise ValueError("cars in several worlds need backend numpy (or auto), ground plane and collide=False")
+        self.backend = backend if backend != "auto" else \
+            ("python" if n_cars <= PYTHON_BACKEND_MAX_CARS and not several else "numpy")
+        #: the fleet's worlds (pybullet clients); ``client`` is the first
+        self.clients = clients
+        self.client = clients[0]
         self.n = int(n_cars)
         self.params = params if params is not None else VehicleParams.load("default")
         self.collide = bool(collide)
@@ -473,17 +488,19 @@ class CarFleet:
         self.substeps = int(substeps)
         self.dt_control = 1.0 / self.control_hz  # [s]
         self.dt = self.dt_control / self.substeps  # [s] physics step
-        cid = self.client
-        p.setGravity(0.0, 0.0, -_G, physicsClientId=cid)
-        p.setPhysicsEngineParameter(fixedTimeStep=self.dt, numSubSteps=0, physicsClientId=cid)
+        for cid in clients:
+            p.setGravity(0.0, 0.0, -_G, physicsClientId=cid)
+            p.setPhysicsEngineParameter(fixedTimeStep=self.dt, numSubSteps=0, physicsClientId=cid)
+        per = -(-self.n // len(clients))
+        # per-car argument columns of the batched pybullet calls (map over C functions): world, base link, frame
+        self._cids, self._links, self._world_frames = [clients[i // per] for i in range(self.n)], [-1] * self.n, \
+            [p.WORLD_FRAME] * self.n
         self._build_constants()
-        self.bodies: list[int] = [self._create_body() for _ in range(self.n)]
+        self.bodies: list[int] = [self._create_body(cid) for cid in self._cids]
         self.set_collide(self.collide)
         #: car-car contact impulses of the last control step [N s], ``[N, N]`` (see :meth:`track_contacts`); None: off
         self.contact_impulse: np.ndarray | None = None
         self._body_index = {b: i for i, b in enumerate(self.bodies)}
-        # per-car argument columns of the batched pybullet calls (map over C functions)
-        self._cids, self._links, self._world_frames = [self.client] * self.n, [-1] * self.n, [p.WORLD_FRAME] * self.n
         n = self.n
         # per-car dynamic state; after a step these are new arrays (never modified in place)
         self._omega = np.zeros((n, 4))  # [rad/s] wheel spin
@@ -552,8 +569,8 @@ class CarFleet:
         self._ratios_list = self._ratios.tolist()
         self._curve_rpm_list, self._curve_nm_list = self._curve_rpm.tolist(), self._curve_nm.tolist()
 
-    def _create_body(self) -> int:
-        prm, cid = self.params, self.client
+    def _create_body(self, cid: int) -> int:
+        prm = self.params
         half = [prm.length / 2.0, prm.width / 2.0, prm.height / 2.0]
         box_center = [prm.cg_to_front_axle + prm.front_overhang - prm.length / 2.0, 0.0,
                       prm.ground_clearance + prm.height / 2.0 - prm.cg_height]
@@ -570,13 +587,17 @@ class CarFleet:
     def set_collide(self, collide: bool) -> None:
         """Switch car-car chassis collisions on or off (the ground always collides)."""
         self.collide = bool(collide)
+        if collide and len(self.clients) > 1:
+            raise ValueError("cars in different worlds cannot collide")
         mask = GROUND_GROUP | (CAR_GROUP if self.collide else 0)
-        for b in self.bodies:
-            p.setCollisionFilterGroupMask(b, -1, CAR_GROUP, mask, physicsClientId=self.client)
+        for b, cid in zip(self.bodies, self._cids):
+            p.setCollisionFilterGroupMask(b, -1, CAR_GROUP, mask, physicsClientId=cid)
 
     def track_contacts(self, on: bool = True) -> None:
         """Record car-car contacts: after every :meth:`step`, ``contact_impulse [N, N]`` holds the impulse [N s]
         each pair of chassis exchanged over the step's physics substeps (symmetric; 0: no contact)."""
+        if on and len(self.clients) > 1:
+            raise ValueError("car-car contacts need the cars in one world")
         self.contact_impulse = np.zeros((self.n, self.n)) if on else None
 
     def _collect_contacts(self) -> None:
@@ -654,8 +675,9 @@ class CarFleet:
             raise ValueError("reset xy, yaw and speed must be finite")
         if np.any(speed < 0):
             raise ValueError("reset speed must be >= 0 (cars drive forward)")
-        cid = self.client
+        cids = self._cids
         for j, i in enumerate(idx.tolist()):
+            cid = cids[i]
             c, s = math.cos(yaw[j] / 2.0), math.sin(yaw[j] / 2.0)
             p.resetBasePositionAndOrientation(self.bodies[i], [xy[j, 0], xy[j, 1], self._ride_z], [0.0, 0.0, s, c],
                                               physicsClientId=cid)
@@ -927,7 +949,8 @@ class CarFleet:
         bodies, links, frames, cids = self.bodies, self._links, self._world_frames, self._cids
         _consume(map(p.applyExternalForce, bodies, links, world[:, 0].tolist(), self._raw[:, 0:3].tolist(), frames, cids))
         _consume(map(p.applyExternalTorque, bodies, links, world[:, 1].tolist(), frames, cids))
-        p.stepSimulation(physicsClientId=cid)
+        for c in self.clients:
+            p.stepSimulation(physicsClientId=c)
         if self.contact_impulse is not None:
             self._collect_contacts()
         self._read_state()

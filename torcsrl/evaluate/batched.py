@@ -58,7 +58,11 @@ from torcsrl.evaluate.protocol import (Degradation, EpisodeBook, default_max_ste
                                        seed_for)
 from torcsrl.policies import Policy
 
-__all__ = ["supports_batch", "row_linear", "RowActor", "run_batch"]
+__all__ = ["supports_batch", "row_linear", "RowActor", "run_batch", "CARS_PER_WORLD"]
+
+#: Cars per pybullet world of a batch (``RaceCore(cars_per_world=...)``): the cars of a grid drive the same line, and in
+#: one world the collision broadphase's cost of their overlapping boxes grows with the square of their number.
+CARS_PER_WORLD = 32
 
 
 class _PerCarDraws:
@@ -140,11 +144,13 @@ def run_batch(policy: Policy, track: str, surface: str | None, degradations: Seq
     clean cell) on one track as cars of one env; returns one list of rows per degradation, each row
     what :func:`torcsrl.evaluate.protocol.run_cell` returns for that cell and episode.
 
-    The env has ``max_cars`` cars (default: every episode at once), in groups of ``episodes`` cars:
+    The env has up to ``max_cars`` cars (default: every episode at once), in groups of ``episodes`` cars:
     a group drives the episodes of one cell side by side, and when all of them have ended it is reset
     (alone) to drive the next cell waiting, so that cars do not idle while the slowest episode of the
-    grid finishes (continuous batching). Cars whose episode has ended brake to a halt until their
-    group restarts; their steps are not booked.
+    grid finishes (continuous batching). Of the groups that fit, it makes the fewest that drive the cells
+    in as many rounds (11 cells and room for 8 groups: 6 groups, not 8 of which 5 would idle the second
+    round). Cars whose episode has ended brake to a halt until their group restarts; their steps are not
+    booked.
     """
     from collections import deque
 
@@ -161,8 +167,10 @@ def run_batch(policy: Policy, track: str, surface: str | None, degradations: Seq
     hz = {**dict(env_kwargs or {}), **policy.env_overrides}.get("control_hz", 50.0)
     steps = int(max_steps) if max_steps else default_max_steps(geom.length, laps, 1.0 / float(hz))
     groups = max(1, min(len(degs), (int(max_cars) if max_cars else len(degs) * E) // E))
+    rounds = -(-len(degs) // groups)
+    groups = -(-len(degs) // rounds)  # the fewest groups that drive the cells in as many rounds: none idles a round
     n = groups * E
-    kw = dict(env_kwargs or {})
+    kw = {"cars_per_world": CARS_PER_WORLD, **dict(env_kwargs or {})}
     kw.update({k: v for k, v in policy.env_overrides.items() if k != "sensors"})
     sensors = env_sensors(policy)
     env = make_env(track=track, surface=surface, lap_limit=int(laps), max_steps=steps, num_cars=n, batched=True,
