@@ -39,6 +39,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from torcsrl.evaluate import run_cell  # noqa: E402
 from torcsrl.evaluate.batched import run_batch  # noqa: E402
 from torcsrl.policies import load_policy  # noqa: E402
+from torcsrl.report import ReportConfig  # noqa: E402
 
 DEGRADATIONS = ("rangefinder.noise", "rangefinder.dropout", "rangefinder.dead_beams", "rangefinder.fog", "rangefinder.rain",
                 "rangefinder.latency")
@@ -59,8 +60,8 @@ def main(argv=None) -> int:
     ap.add_argument("--laps", type=int, default=1)
     ap.add_argument("--max-steps", type=int, default=None, help="step cap per episode (default: the protocol's, a full lap)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--max-cars", type=int, nargs="+", default=[64],
-                    help="cars of the batched env, one batched run per value (the report's batch_cars default, 64)")
+    ap.add_argument("--max-cars", type=int, nargs="+", default=[ReportConfig.batch_cars],
+                    help="cars of the batched env, one batched run per value (default: the report's batch_cars default)")
     a = ap.parse_args(argv)
     torch.set_num_threads(1)
     pol = load_policy(a.policy)

@@ -20,8 +20,11 @@ relation; see *The one exception* below):
   severity, e)`` would use;
 * **physics**: a car's dynamics do not depend on the other cars (they never collide; the numpy and
   the per-car backends compute the same numbers), and every car is located on its track by the
-  one-car env's projection (``RaceCore.scalar_locate_max_cars``: the vectorised one may put a car
-  standing exactly on the start line at s = L - ε instead of 0);
+  one-car env's chord walk (``RaceCore.scalar_locate_max_cars``; :meth:`Track.track_points` walks
+  every car at once with the walk's bits; the windowed projection may put a car standing exactly on
+  the start line at s = L - ε instead of 0). The cars are dealt over pybullet worlds of
+  :data:`CARS_PER_WORLD` (``RaceCore(cars_per_world=...)``): a car moves in its world as it would in
+  one shared world, and the collision broadphase of cars that drive the same line stays cheap;
 * **policy**: a batched matrix product does not give the same float32 bits as one row at a time
   (other kernels, other summation orders), so the actor runs as one matrix-vector product per row
   (:func:`row_linear`: ``baddbmm`` over the rows, equal to the one-car ``F.linear``);
