@@ -457,6 +457,36 @@ def test_cars_per_world_drive_as_in_one_world_and_resume_exactly():
         RaceCore(track="oval", num_cars=2, cars_per_world=0)
 
 
+def test_parked_cars_leave_the_others_alone_and_restart_as_if_never_parked():
+    """RaceCore.park: the other cars' episodes are bit for bit what they would have been, a parked car's
+    rangefinder reads off-track, and its next reset starts it as if it had never been parked."""
+    kw = dict(track="kidney", num_cars=6, start="random", seed=5)
+    a, b = RaceCore(**kw), RaceCore(**kw)
+    rng = np.random.default_rng(1)
+    acts = rng.uniform(-1.0, 1.0, (30, 6, 2))
+    acts[:, :, 1] = np.abs(acts[:, :, 1])
+    for core in (a, b):
+        core.reset()
+    for k, act in enumerate(acts):
+        if k == 4:
+            b.park([1, 4])
+            assert b.parked.tolist() == [False, True, False, False, True, False]
+        if k == 15:
+            for core in (a, b):
+                core.reset(np.array([1]))
+            assert b.parked.tolist() == [False, False, False, False, True, False]
+        for core in (a, b):
+            core.step(act)
+        keep = [0, 2, 3, 5] + ([1] if k >= 15 else [])
+        assert a.fleet._raw[keep].tobytes() == b.fleet._raw[keep].tobytes(), k
+        assert a.obs["rangefinder"][keep].tobytes() == b.obs["rangefinder"][keep].tobytes(), k
+        assert a.rewards[keep].tobytes() == b.rewards[keep].tobytes(), k
+        if 4 <= k:
+            assert (b.obs["rangefinder"][4] == -1.0).all()
+    for core in (a, b):
+        core.close()
+
+
 def test_laps_count_full_laps_driven_and_times_run_line_to_line():
     """After a random start, crossing the line is not a lap: ``lap`` counts full lengths driven;
     lap times run from one line crossing to the next (the partial first lap is untimed)."""

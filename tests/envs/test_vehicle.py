@@ -439,6 +439,51 @@ def test_cars_dealt_over_several_worlds_move_as_in_one_world():
         assert run(k).tobytes() == one.tobytes(), k
 
 
+@pytest.mark.parametrize("worlds", [1, 3])
+def test_parked_cars_leave_the_physics_and_come_back_as_if_reset_in_place(worlds):
+    """park() takes cars out of the physics: the others move as they would have, a parked car's state stays
+    frozen, and reset() brings it back as a new body with the bits of a body reset in place."""
+    n = 9
+
+    def run(park: bool) -> tuple[np.ndarray, CarFleet]:
+        ws = [World() for _ in range(worlds)]
+        try:
+            f = CarFleet([w.client for w in ws] if worlds > 1 else ws[0].client, n, backend="numpy",
+                         control_hz=10.0, substeps=20)
+            rng = np.random.default_rng(0)
+            f.reset(np.arange(n), rng.normal(0.0, 3.0, (n, 2)), rng.normal(0.0, 0.1, n), 20.0)
+            out = []
+            for k in range(30):
+                if park and k == 5:
+                    f.park([2, 6, 7])
+                    f.park([6])  # again: nothing happens
+                    assert f.parked.tolist() == [i in (2, 6, 7) for i in range(n)]
+                if k == 12:
+                    f.reset([2, 7], [[1.0, 2.0], [3.0, -1.0]], [0.4, -0.2], 12.0)
+                f.step(np.linspace(-0.5, 0.5, n), 0.7, float(k % 7 == 0))
+                out.append(np.concatenate([f._raw, f.wheel_omega, f.wheel_load], axis=1))
+            return np.array(out), f
+        finally:
+            for w in ws:
+                w.close()
+
+    a, _ = run(False)
+    b, f = run(True)
+    never = [0, 1, 3, 4, 5, 8]
+    assert a[:, never].tobytes() == b[:, never].tobytes()
+    assert a[12:, [2, 7]].tobytes() == b[12:, [2, 7]].tobytes()  # parked, then reset: as if reset in place
+    assert np.array_equal(b[5, 6, :13], b[-1, 6, :13])  # still parked: its pose and velocity frozen
+    assert f.parked.tolist() == [i == 6 for i in range(n)]
+    with pytest.raises(ValueError, match="parked"):
+        f.get_state()
+
+
+def test_park_needs_the_numpy_backend(world):
+    f = world.fleet(2, backend="python")
+    with pytest.raises(ValueError, match="numpy backend"):
+        f.park([0])
+
+
 def test_several_worlds_refuse_what_needs_one():
     worlds = [World() for _ in range(2)]
     try:

@@ -355,6 +355,17 @@ class RaceCore:
         self._clear_books(idx, lap_timed=self.start == "grid")
         self._observe()
 
+    def park(self, idx: Any) -> None:
+        """Take cars ``idx`` out of the physics until their next reset (:meth:`CarFleet.park`, numpy backend):
+        for a batch whose cars end their episodes at different times. A parked car's state, books and
+        observation rows are left as they are (its rangefinder reads off-track); the others are untouched."""
+        self.fleet.park(idx)
+
+    @property
+    def parked(self) -> np.ndarray:
+        """``[n]`` bool: the cars out of the physics until their next reset (:meth:`park`)."""
+        return self.fleet.parked
+
     def _clear_books(self, idx: np.ndarray, lap_timed: bool) -> None:
         """Zero the lap books, counters, termination and reward terms of the cars ``idx`` just placed, and locate
         them; ``lap_timed``: whether their first lap counts from now (a grid start) or from the first crossing."""
@@ -709,6 +720,8 @@ class RaceCore:
         keys = self._all_keys
         if "rangefinder" in keys:
             on = np.abs(self.track_pos) <= 1.0
+            if self.fleet._live is not None:  # parked cars cast no beams
+                on &= ~self.fleet.parked
             xy = fleet.pos[:, :2] - self.car_origins()
             obs["rangefinder"] = self.rangefinder.read(self.slot, xy, fleet.yaw, on)
         if "opponents" in keys:

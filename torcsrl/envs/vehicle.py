@@ -75,7 +75,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from importlib import resources
 from itertools import chain
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import pybullet as p
@@ -355,6 +355,16 @@ _MISS = (-1, -1, 9.0)  # a suspension ray that meets no ground (read as far belo
 _flat = chain.from_iterable
 
 
+class _Live(NamedTuple):
+    """The cars of a fleet still in the physics while some are parked, and their pybullet call columns."""
+
+    idx: np.ndarray
+    bodies: list
+    cids: list
+    links: list
+    frames: list
+
+
 def _consume(calls) -> None:
     """Run an iterator of calls for their effects (``map`` over a C function: no Python frame per call)."""
     deque(calls, maxlen=0)
@@ -501,6 +511,9 @@ class CarFleet:
         #: car-car contact impulses of the last control step [N s], ``[N, N]`` (see :meth:`track_contacts`); None: off
         self.contact_impulse: np.ndarray | None = None
         self._body_index = {b: i for i, b in enumerate(self.bodies)}
+        #: cars taken out of the physics until their next reset (:meth:`park`)
+        self.parked = np.zeros(self.n, dtype=bool)
+        self._live: _Live | None = None  # the cars still in the physics while some are parked (None: every car)
         n = self.n
         # per-car dynamic state; after a step these are new arrays (never modified in place)
         self._omega = np.zeros((n, 4))  # [rad/s] wheel spin
@@ -591,7 +604,8 @@ class CarFleet:
             raise ValueError("cars in different worlds cannot collide")
         mask = GROUND_GROUP | (CAR_GROUP if self.collide else 0)
         for b, cid in zip(self.bodies, self._cids):
-            p.setCollisionFilterGroupMask(b, -1, CAR_GROUP, mask, physicsClientId=cid)
+            if b is not None:
+                p.setCollisionFilterGroupMask(b, -1, CAR_GROUP, mask, physicsClientId=cid)
 
     def track_contacts(self, on: bool = True) -> None:
         """Record car-car contacts: after every :meth:`step`, ``contact_impulse [N, N]`` holds the impulse [N s]
@@ -613,6 +627,8 @@ class CarFleet:
     def get_state(self) -> dict[str, np.ndarray]:
         """The fleet's own dynamic state (wheel spin, steer angle, gear, rpm, wheel loads, surfaces);
         the bodies' poses and velocities live in the pybullet client (``saveBullet``)."""
+        if self.parked.any():
+            raise ValueError("a fleet with parked cars cannot be saved: reset them first")
         return {k: np.array(getattr(self, k), copy=True) for k in ("_omega", "_delta", "_gear", "_rpm", "_fz", "_surface")}
 
     def set_state(self, state: Mapping[str, np.ndarray]) -> None:
@@ -675,6 +691,8 @@ class CarFleet:
             raise ValueError("reset xy, yaw and speed must be finite")
         if np.any(speed < 0):
             raise ValueError("reset speed must be >= 0 (cars drive forward)")
+        if self.parked[idx].any():
+            self._unpark(idx[self.parked[idx]])
         cids = self._cids
         for j, i in enumerate(idx.tolist()):
             cid = cids[i]
@@ -703,15 +721,60 @@ class CarFleet:
         else:
             self._read_state()
 
+    # ---- parking ----------------------------------------------------------------------------
+    def park(self, idx: Any) -> None:
+        """Take cars ``idx`` out of the physics until their next :meth:`reset` (numpy backend): their bodies
+        leave their worlds, so they cost no state reads, force calls or integration; their state arrays
+        keep their last values, and their rows of the per-substep arithmetic are computed and dropped.
+        The other cars move as they would have (cars never touch each other), and :meth:`reset` puts a
+        parked car back as a new body (the same numbers as a body reset in place). For evaluations whose
+        cars end their episodes at different times (:func:`torcsrl.evaluate.batched.run_batch`)."""
+        idx = np.atleast_1d(np.asarray(idx, dtype=np.int64))
+        idx = idx[~self.parked[idx]]
+        if not len(idx):
+            return
+        if self.backend != "numpy":
+            raise ValueError("park needs the numpy backend")
+        for i in idx.tolist():
+            p.removeBody(self.bodies[i], physicsClientId=self._cids[i])
+            self._body_index.pop(self.bodies[i], None)  # (body ids are per world: the index serves one world)
+            self.bodies[i] = None
+        self.parked[idx] = True
+        self._relive()
+
+    def _unpark(self, idx: np.ndarray) -> None:
+        mask = GROUND_GROUP | (CAR_GROUP if self.collide else 0)
+        for i in idx.tolist():
+            cid = self._cids[i]
+            b = self._create_body(cid)
+            p.setCollisionFilterGroupMask(b, -1, CAR_GROUP, mask, physicsClientId=cid)
+            self.bodies[i] = b
+            self._body_index[b] = i
+        self.parked[idx] = False
+        self._relive()
+
+    def _relive(self) -> None:
+        if not self.parked.any():
+            self._live = None
+            return
+        live = np.flatnonzero(~self.parked)
+        pick = live.tolist()
+        self._live = _Live(live, [self.bodies[i] for i in pick], [self._cids[i] for i in pick], [-1] * len(pick),
+                           [p.WORLD_FRAME] * len(pick))
+
     # ---- state ------------------------------------------------------------------------------
     def _read_state(self) -> None:
         """numpy backend: read every car's pose and velocity once and derive the cached frames."""
         cid, n = self.client, self.n
-        cids = self._cids
+        live = self._live
+        bodies, cids = (self.bodies, self._cids) if live is None else (live.bodies, live.cids)
         # one row per car: position (3), quaternion xyzw (4), linear (3) and angular (3) velocity; read car by car
         # (pose, then velocity) and flattened in C (map, chain, fromiter: no Python frame per car)
-        parts = zip(map(p.getBasePositionAndOrientation, self.bodies, cids), map(p.getBaseVelocity, self.bodies, cids))
-        raw = np.fromiter(_flat(_flat(_flat(parts))), dtype=np.float64, count=13 * n).reshape(n, 13)
+        parts = zip(map(p.getBasePositionAndOrientation, bodies, cids), map(p.getBaseVelocity, bodies, cids))
+        raw = np.fromiter(_flat(_flat(_flat(parts))), dtype=np.float64, count=13 * len(bodies)).reshape(-1, 13)
+        if live is not None:  # parked cars keep their last rows
+            raw, rows = self._raw.copy(), raw
+            raw[live.idx] = rows
         self._raw = raw
         quat = raw[:, 3:7]
         rot = ((quat[:, :, None] * quat[:, None, :]).reshape(n, 16) @ _QM + _QC).reshape(n, 3, 3)  # body -> world
@@ -946,8 +1009,13 @@ class CarFleet:
         wrench = forces.reshape(n, 12) @ self._jac + aero
         world = np.matmul(wrench.reshape(n, 2, 3), self._rot.transpose(0, 2, 1))  # (R f, R tau)
         # every car's force, then every car's torque (each body accumulates its own: the same sums as car by car)
-        bodies, links, frames, cids = self.bodies, self._links, self._world_frames, self._cids
-        _consume(map(p.applyExternalForce, bodies, links, world[:, 0].tolist(), self._raw[:, 0:3].tolist(), frames, cids))
+        live, pos = self._live, self._raw[:, 0:3]
+        if live is None:
+            bodies, links, frames, cids = self.bodies, self._links, self._world_frames, self._cids
+        else:  # parked cars: no forces
+            bodies, links, frames, cids = live.bodies, live.links, live.frames, live.cids
+            world, pos = world[live.idx], pos[live.idx]
+        _consume(map(p.applyExternalForce, bodies, links, world[:, 0].tolist(), pos.tolist(), frames, cids))
         _consume(map(p.applyExternalTorque, bodies, links, world[:, 1].tolist(), frames, cids))
         for c in self.clients:
             p.stepSimulation(physicsClientId=c)

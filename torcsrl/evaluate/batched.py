@@ -152,8 +152,9 @@ def run_batch(policy: Policy, track: str, surface: str | None, degradations: Seq
     (alone) to drive the next cell waiting, so that cars do not idle while the slowest episode of the
     grid finishes (continuous batching). Of the groups that fit, it makes the fewest that drive the cells
     in as many rounds (11 cells and room for 8 groups: 6 groups, not 8 of which 5 would idle the second
-    round). Cars whose episode has ended brake to a halt until their group restarts; their steps are not
-    booked.
+    round). Cars whose episode has ended are parked (:meth:`RaceCore.park`: out of the physics, nearly
+    free) until their group restarts; their steps are not booked. Episodes of one grid can differ in length
+    by 10x (a crash in 50 steps, a slow car truncated at the step cap), so idle cars are the rule.
     """
     from collections import deque
 
@@ -234,6 +235,7 @@ def run_batch(policy: Policy, track: str, surface: str | None, degradations: Seq
         src = {k: td.get(k) for k in sensors}
         views = [view(src, g, True) for g in range(groups)]
         stop = torch.tensor([0.0, -1.0])
+        can_park = core.fleet.backend == "numpy"
         while any(cell_of[g] is not None for g in range(groups)):
             obs = {k: torch.cat([v[k] for v in views]) if groups > 1 else views[0][k] for k in sensors}
             action = actor(obs)
@@ -241,7 +243,9 @@ def run_batch(policy: Policy, track: str, surface: str | None, degradations: Seq
             for g in range(groups):
                 if book_of[g] is not None:
                     idle[spans[g]] = ~book_of[g].active
-            action[torch.from_numpy(idle)] = stop  # cars whose episode has ended brake to a halt, off the books
+            action[torch.from_numpy(idle)] = stop  # cars whose episode has ended: off the books
+            if can_park and (idle & ~core.parked).any():  # ... and out of the physics until their group restarts
+                core.park(np.flatnonzero(idle & ~core.parked))
             td = env.step(TensorDict._new_unsafe({"action": action}, batch_size=torch.Size([n])))
             nxt = td.get("next")
             finished = []
