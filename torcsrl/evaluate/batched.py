@@ -2,10 +2,11 @@
 
 A report cell is ``episodes`` episodes of one degradation at one severity; the cells that share a
 policy and a track differ only in the weather. :func:`run_batch` drives them as cars of ONE
-:func:`torcsrl.envs.make_env` (N cars in one pybullet world, the physics vectorised over them): the
-cars form groups of ``episodes`` cars, each group drives one cell, and a group whose episodes have
-all ended is reset (alone) to drive the next cell waiting. The policy runs once per step on the whole
-batch, each cell's degradation stack once per step on its group's rows.
+:func:`torcsrl.envs.make_env` (N cars in pybullet worlds of :data:`CARS_PER_WORLD`, the physics
+vectorised over them): the cars form groups of ``episodes`` cars, each group drives one cell, a car
+whose episode has ended is parked (out of the physics), and a group whose episodes have all ended is
+reset (alone) to drive the next cell waiting. The policy runs once per step on the whole batch, each
+cell's degradation stack once per step on its group's rows.
 
 Every car keeps the seeds of the one-car path (:func:`torcsrl.evaluate.protocol.run_cell`), and a
 batched episode is the SAME episode, bit for bit (tested in ``tests/test_batched_eval.py``), as long
