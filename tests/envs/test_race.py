@@ -367,6 +367,126 @@ def test_scalar_and_vectorised_locate_agree():
     core.close()
 
 
+@pytest.mark.parametrize("track", ["kidney", ["hairpins", "oval", "rallycross"]])
+def test_vectorised_locate_equals_the_plain_python_one(track):
+    """RaceCore._locate_walk (the chord walk vectorised over the cars) writes the bits _locate_scalar writes, wheel
+    surfaces included, and when a car's walk fails it returns None having written what the scalar loop wrote
+    (the cars before the first failing one, and that car's own point if it settled)."""
+    core = RaceCore(track=track, num_cars=24, seed=1)
+    core.reset()
+    rng = np.random.default_rng(2)
+    n, fails = core.n, 0
+    for rep in range(40):
+        tr = core.car_tracks
+        s = np.array([rng.uniform(0.0, t.length) for t in tr])
+        s[:2] = [0.0, tr[1].length - 1e-9]  # on the start line
+        d = rng.uniform(-1.0, 1.0, n) * [0.0, 3.0, 10.0, 40.0][rep % 4]
+        xy = np.stack([t.to_world(s[i], d[i]) for i, t in enumerate(tr)])
+        wheels = xy[:, None, :] + rng.normal(0.0, 1.5, (n, 4, 2))
+        yaw = rng.uniform(-math.pi, math.pi, n)
+        chord = np.array([(int(t._locate(s[i])[0]) + int(rng.integers(-5, 6))) % len(t) for i, t in enumerate(tr)])
+        if rep % 5 == 0:
+            chord[rng.integers(0, n, 3)] = 7  # far chords: some walks fail
+        out = []
+        for f in (core._locate_scalar, core._locate_walk):
+            core.chord[:] = chord
+            for a in (core.s, core.d, core.track_pos, core.angle):
+                a[:] = -9.0
+            ids = f(xy, wheels, yaw)
+            out.append([ids] + [a.copy() for a in (core.s, core.d, core.chord, core.track_pos, core.angle)])
+        (ia, *a), (ib, *b) = out
+        assert (ia is None) == (ib is None), rep
+        fails += ia is None
+        if ia is not None:
+            assert np.array_equal(ia, ib)
+        for u, v in zip(a, b):
+            assert u.tobytes() == v.tobytes(), rep
+    assert 0 < fails < 40
+    core.close()
+
+
+def test_wrap_deltas_is_each_tracks_wrap_delta_bit_for_bit():
+    from torcsrl.envs import tracks
+    from torcsrl.envs.race import wrap_deltas
+
+    ts = [tracks.load(name) for name in ("kidney", "oval", "hairpins")]
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        tr = [ts[i] for i in rng.integers(0, 3, 64)]
+        lengths = np.array([t.length for t in tr])
+        s_old = rng.uniform(0.0, 1.0, 64) * lengths
+        s = np.mod(s_old + rng.normal(0.0, 5.0, 64) + rng.choice([0.0, 1e-12, 0.5], 64) * lengths, lengths)
+        s[:3] = [0.0, lengths[1] - 1e-9, s_old[2]]
+        want = np.array([t.wrap_delta(s[i], s_old[i]) for i, t in enumerate(tr)])
+        assert wrap_deltas(s, s_old, lengths).tobytes() == want.tobytes()
+
+
+def test_cars_per_world_drive_as_in_one_world_and_resume_exactly():
+    """cars_per_world deals the cars over several pybullet worlds: the same episodes, bit for bit, as one world;
+    get_state / set_state carry every world."""
+    kw = dict(track="kidney", num_cars=5, start="random", spawn_jitter=(2.0, 0.2), seed=3)
+    one, split = RaceCore(**kw), RaceCore(**kw, cars_per_world=2)
+    assert len(split.fleet.clients) == 3 and len(one.fleet.clients) == 1
+    rng = np.random.default_rng(0)
+    actions = rng.uniform(-1.0, 1.0, (40, 5, 2))
+    actions[:, :, 1] = np.abs(actions[:, :, 1])
+    saved = None
+    for core in (one, split):
+        core.reset()
+    for k, a in enumerate(actions):
+        for core in (one, split):
+            core.step(a)
+        assert one.fleet._raw.tobytes() == split.fleet._raw.tobytes(), k
+        assert one.s.tobytes() == split.s.tobytes() and one.obs["rangefinder"].tobytes() == split.obs["rangefinder"].tobytes()
+        if k == 19:
+            saved = split.get_state()
+            assert len(saved["more_worlds"]) == 2
+    twin = RaceCore(**kw, cars_per_world=2)
+    twin.reset()
+    twin.set_state(saved)
+    for a in actions[20:]:
+        twin.step(a)
+    assert twin.fleet._raw.tobytes() == split.fleet._raw.tobytes() and twin.rewards.tobytes() == split.rewards.tobytes()
+    with pytest.raises(ValueError, match="pybullet worlds"):
+        one.set_state(saved)
+    for core in (one, split, twin):
+        core.close()
+    with pytest.raises(ValueError, match="one world"):
+        RaceCore(track="oval", num_cars=2, cars_per_world=1, sensors=("state", "pixels"))
+    with pytest.raises(ValueError, match="cars_per_world"):
+        RaceCore(track="oval", num_cars=2, cars_per_world=0)
+
+
+def test_parked_cars_leave_the_others_alone_and_restart_as_if_never_parked():
+    """RaceCore.park: the other cars' episodes are bit for bit what they would have been, a parked car's
+    rangefinder reads off-track, and its next reset starts it as if it had never been parked."""
+    kw = dict(track="kidney", num_cars=6, start="random", seed=5)
+    a, b = RaceCore(**kw), RaceCore(**kw)
+    rng = np.random.default_rng(1)
+    acts = rng.uniform(-1.0, 1.0, (30, 6, 2))
+    acts[:, :, 1] = np.abs(acts[:, :, 1])
+    for core in (a, b):
+        core.reset()
+    for k, act in enumerate(acts):
+        if k == 4:
+            b.park([1, 4])
+            assert b.parked.tolist() == [False, True, False, False, True, False]
+        if k == 15:
+            for core in (a, b):
+                core.reset(np.array([1]))
+            assert b.parked.tolist() == [False, False, False, False, True, False]
+        for core in (a, b):
+            core.step(act)
+        keep = [0, 2, 3, 5] + ([1] if k >= 15 else [])
+        assert a.fleet._raw[keep].tobytes() == b.fleet._raw[keep].tobytes(), k
+        assert a.obs["rangefinder"][keep].tobytes() == b.obs["rangefinder"][keep].tobytes(), k
+        assert a.rewards[keep].tobytes() == b.rewards[keep].tobytes(), k
+        if 4 <= k:
+            assert (b.obs["rangefinder"][4] == -1.0).all()
+    for core in (a, b):
+        core.close()
+
+
 def test_laps_count_full_laps_driven_and_times_run_line_to_line():
     """After a random start, crossing the line is not a lap: ``lap`` counts full lengths driven;
     lap times run from one line crossing to the next (the partial first lap is untimed)."""

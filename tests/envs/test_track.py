@@ -113,6 +113,32 @@ def test_projection_is_continuous_along_a_path_through_a_hairpin():
     assert np.abs(np.diff(s2)).max() < 0.06 and np.allclose(d2, 4.0, atol=1e-6)
 
 
+@pytest.mark.parametrize("name", ["kidney", "rallycross", "hairpins", "oval", "gen-7"])
+def test_vectorised_walk_equals_the_scalar_walk_bit_for_bit(name):
+    """Track.track_points gives, point by point, the bits of Track.track_point (None <-> not ok): on and off the
+    road, on the start line (s = 0 and just before L), from nearby and from far chords (walks that fail)."""
+    t = tracks.load(name)
+    rng = np.random.default_rng(5)
+    n = 1500
+    s = rng.uniform(0.0, t.length, n)
+    s[:6] = [0.0, t.length - 1e-9, 1e-12, t.s[3], t.s[-1], 0.5 * t.length]
+    d = rng.uniform(-1.0, 1.0, n) * np.repeat([0.0, 2.0, 6.0, 20.0, 60.0], n // 5)
+    xy = t.to_world(s, d) + rng.normal(0.0, 0.3, (n, 2)) * (np.arange(n) % 3 == 0)[:, None]
+    chord = (t._locate(s)[0] + rng.integers(-8, 9, n)) % len(t)
+    chord[::7] = rng.integers(0, len(t), len(chord[::7]))  # far from the point
+    vs, vd, vc, vt, ok = t.track_points(xy[:, 0], xy[:, 1], chord)
+    failed = 0
+    for k in range(n):
+        r = t.track_point(float(xy[k, 0]), float(xy[k, 1]), int(chord[k]))
+        assert (r is not None) == bool(ok[k]), k
+        if r is None:
+            failed += 1
+            continue
+        got = (float(vs[k]), float(vd[k]), int(vc[k]), float(vt[k]))
+        assert np.array(got[:2] + got[3:]).tobytes() == np.array(r[:2] + r[3:]).tobytes() and got[2] == r[2], (k, got, r)
+    assert 0 < failed < n // 3  # both kinds of walks were compared
+
+
 def test_arc_curvature_is_one_over_radius():
     t = tracks.load("oval")  # two 120 m-radius, 180-degree left bends after 500 m straights
     mid_arc = 500.0 + 0.5 * np.pi * 120.0

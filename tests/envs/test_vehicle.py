@@ -412,6 +412,96 @@ def test_backends_agree_and_are_deterministic():
     assert np.abs(a - b).max() > 1.0  # the options do change the dynamics
 
 
+def test_cars_dealt_over_several_worlds_move_as_in_one_world():
+    """A fleet over several pybullet clients gives the bits of the same fleet in one client: each car's body is
+    integrated alone (no contacts between cars), only the collision broadphase is split."""
+    n = 12
+
+    def run(k: int) -> np.ndarray:
+        worlds = [World() for _ in range(k)]
+        try:
+            f = CarFleet([w.client for w in worlds] if k > 1 else worlds[0].client, n, backend="numpy",
+                         control_hz=10.0, substeps=20)
+            assert f.clients == [w.client for w in worlds]
+            rng = np.random.default_rng(0)
+            f.reset(np.arange(n), rng.normal(0.0, 0.5, (n, 2)), rng.normal(0.0, 0.1, n), rng.uniform(5.0, 30.0, n))
+            out = []
+            for k_ in range(25):
+                f.step(rng.uniform(-1, 1, n), rng.uniform(0, 1, n), rng.uniform(0, 1, n) * (k_ % 5 == 0))
+                out.append(np.concatenate([f._raw.ravel(), f.wheel_omega.ravel(), f.wheel_load.ravel(), f.rpm]))
+            return np.array(out)
+        finally:
+            for w in worlds:
+                w.close()
+
+    one = run(1)
+    for k in (2, 5):
+        assert run(k).tobytes() == one.tobytes(), k
+
+
+@pytest.mark.parametrize("worlds", [1, 3])
+def test_parked_cars_leave_the_physics_and_come_back_as_if_reset_in_place(worlds):
+    """park() takes cars out of the physics: the others move as they would have, a parked car's state stays
+    frozen, and reset() brings it back as a new body with the bits of a body reset in place."""
+    n = 9
+
+    def run(park: bool) -> tuple[np.ndarray, CarFleet]:
+        ws = [World() for _ in range(worlds)]
+        try:
+            f = CarFleet([w.client for w in ws] if worlds > 1 else ws[0].client, n, backend="numpy",
+                         control_hz=10.0, substeps=20)
+            rng = np.random.default_rng(0)
+            f.reset(np.arange(n), rng.normal(0.0, 3.0, (n, 2)), rng.normal(0.0, 0.1, n), 20.0)
+            out = []
+            for k in range(30):
+                if park and k == 5:
+                    f.park([2, 6, 7])
+                    f.park([6])  # again: nothing happens
+                    assert f.parked.tolist() == [i in (2, 6, 7) for i in range(n)]
+                if k == 12:
+                    f.reset([2, 7], [[1.0, 2.0], [3.0, -1.0]], [0.4, -0.2], 12.0)
+                f.step(np.linspace(-0.5, 0.5, n), 0.7, float(k % 7 == 0))
+                out.append(np.concatenate([f._raw, f.wheel_omega, f.wheel_load], axis=1))
+            return np.array(out), f
+        finally:
+            for w in ws:
+                w.close()
+
+    a, _ = run(False)
+    b, f = run(True)
+    never = [0, 1, 3, 4, 5, 8]
+    assert a[:, never].tobytes() == b[:, never].tobytes()
+    assert a[12:, [2, 7]].tobytes() == b[12:, [2, 7]].tobytes()  # parked, then reset: as if reset in place
+    assert np.array_equal(b[5, 6, :13], b[-1, 6, :13])  # still parked: its pose and velocity frozen
+    assert f.parked.tolist() == [i == 6 for i in range(n)]
+    with pytest.raises(ValueError, match="parked"):
+        f.get_state()
+
+
+def test_park_needs_the_numpy_backend(world):
+    f = world.fleet(2, backend="python")
+    with pytest.raises(ValueError, match="numpy backend"):
+        f.park([0])
+
+
+def test_several_worlds_refuse_what_needs_one():
+    worlds = [World() for _ in range(2)]
+    try:
+        ids = [w.client for w in worlds]
+        for kw, n in (({"backend": "python"}, 4), ({"collide": True}, 4), ({"ground": "raycast"}, 4), ({}, 1)):
+            with pytest.raises(ValueError):
+                CarFleet(ids, n, **kw)
+        f = CarFleet(ids, 3)
+        assert f.backend == "numpy" and f._cids == [ids[0], ids[0], ids[1]]
+        with pytest.raises(ValueError, match="cannot collide"):
+            f.set_collide(True)
+        with pytest.raises(ValueError, match="one world"):
+            f.track_contacts(True)
+    finally:
+        for w in worlds:
+            w.close()
+
+
 @pytest.mark.parametrize("backend", ["numpy", "python"])
 def test_closed_form_ground_matches_pybullet_ray_test(backend):
     """ground="plane" (closed-form suspension rays) gives pybullet's ray-test trajectory, also for

@@ -36,8 +36,12 @@ from torcsrl.envs.vehicle import CarFleet, VehicleParams, make_ground
 
 ACTION_MODES = ("combined", "separate")
 START_MODES = ("grid", "random")
-#: Up to this many cars, cars are followed along their tracks in plain Python (faster there).
+#: Up to this many cars, cars are followed along their tracks chord by chord (the exact walk of
+#: :meth:`Track.track_point`); beyond, located by the windowed vectorised projection.
 SCALAR_LOCATE_MAX_CARS = 8
+#: Up to this many cars the walk runs car by car in plain Python; beyond, vectorised over the cars
+#: (:meth:`Track.track_points`, the same numbers).
+PYTHON_WALK_MAX_CARS = 4
 #: Distance between the world origins of the tracks of one env [m].
 TRACK_SPACING_M = 10_000.0
 #: Keys of the per-car bookkeeping reported in ``info`` (TORCS names; SI units).
@@ -45,6 +49,13 @@ TRACK_SPACING_M = 10_000.0
 #: knowledge for teachers (a camera sees the surface, no TORCS sensor does); no observation carries it.
 INFO_KEYS: tuple[str, ...] = ("distFromStart", "distRaced", "lap", "curLapTime", "lastLapTime", "bestLapTime", "surfaceMu")
 TERMINATION_REASONS: tuple[str, ...] = ("", "off_track", "backwards", "no_progress", "flipped")
+
+
+def wrap_deltas(s_new: np.ndarray, s_old: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """:meth:`Track.wrap_delta` of each car on its own track (lap lengths ``lengths``), vectorised: the same
+    operations elementwise, so each entry has the bits ``car_tracks[i].wrap_delta(s_new[i], s_old[i])`` has."""
+    half = 0.5 * lengths
+    return np.mod(s_new - s_old + half, lengths) - half
 
 
 def _as_list(x) -> list:
@@ -116,6 +127,10 @@ class RaceCore:
             generated tracks (seeds drawn from ``[lo, hi)`` by a stream seeded with ``seed``); each
             episode drives a pool track with probability ``share``, else a named track
             (:mod:`torcsrl.envs.tracks.procedural`). ``None``: named tracks only.
+        cars_per_world: ``None`` (default): every car in one pybullet world; a number: the cars dealt over
+            ``ceil(n / cars_per_world)`` worlds (:class:`~torcsrl.envs.vehicle.CarFleet`; each car moves as it
+            would in one world, and a world's collision broadphase sorts through its own cars only: many cars
+            on one line are cheaper). Not with traffic or a camera.
         seed: seed of the env's random generator (tracks, surfaces, spawn).
     """
 
@@ -148,6 +163,7 @@ class RaceCore:
         camera: Mapping[str, Any] | None = None,
         procedural: Mapping[str, Any] | None = None,
         traffic: Mapping[str, Any] | None = None,
+        cars_per_world: int | None = None,
         seed: int | None = None,
     ) -> None:
         self.sensors = check_sensors(sensors)
@@ -190,10 +206,21 @@ class RaceCore:
         self.action_mode = action_mode
         self.action_dim = 2 if action_mode == "combined" else 3
 
+        worlds = 1
+        if cars_per_world is not None:
+            if isinstance(cars_per_world, bool) or int(cars_per_world) != cars_per_world or cars_per_world < 1:
+                raise ValueError(f"cars_per_world must be a positive integer or None, got {cars_per_world!r}")
+            worlds = -(-self.n // int(cars_per_world))
+            if worlds > 1 and (self.traffic_spec is not None or "pixels" in self.sensors or "depth" in self.sensors):
+                raise ValueError("cars_per_world: a race (traffic) and the camera need every car in one world")
         self.client = p.connect(p.DIRECT)
-        make_ground(self.client)
+        #: the other pybullet worlds of the cars (cars_per_world), each with its ground
+        self._more_clients = [p.connect(p.DIRECT) for _ in range(worlds - 1)]
+        for c in (self.client, *self._more_clients):
+            make_ground(c)
         params = VehicleParams.load(vehicle, overrides=dict(vehicle_overrides) if vehicle_overrides else None)
-        self.fleet = CarFleet(self.client, self.n, params, control_hz=control_hz, substeps=substeps)
+        self.fleet = CarFleet([self.client, *self._more_clients] if worlds > 1 else self.client, self.n, params,
+                              control_hz=control_hz, substeps=substeps)
         self.dt = self.fleet.dt_control
         self.traffic: Traffic | None = None
         self._group_offset = np.zeros((self.n, 2))
@@ -328,6 +355,17 @@ class RaceCore:
         self._clear_books(idx, lap_timed=self.start == "grid")
         self._observe()
 
+    def park(self, idx: Any) -> None:
+        """Take cars ``idx`` out of the physics until their next reset (:meth:`CarFleet.park`, numpy backend):
+        for a batch whose cars end their episodes at different times. A parked car's state, books and
+        observation rows are left as they are (its rangefinder reads off-track); the others are untouched."""
+        self.fleet.park(idx)
+
+    @property
+    def parked(self) -> np.ndarray:
+        """``[n]`` bool: the cars out of the physics until their next reset (:meth:`park`)."""
+        return self.fleet.parked
+
     def _clear_books(self, idx: np.ndarray, lap_timed: bool) -> None:
         """Zero the lap books, counters, termination and reward terms of the cars ``idx`` just placed, and locate
         them; ``lap_timed``: whether their first lap counts from now (a grid start) or from the first crossing."""
@@ -385,19 +423,22 @@ class RaceCore:
 
     # ------------------------------------------------------------------ exact resume
     def get_state(self) -> dict[str, Any]:
-        """Every piece of dynamic state, for an exact resume on CPU: the pybullet world (bodies'
+        """Every piece of dynamic state, for an exact resume on CPU: the pybullet world(s) (bodies'
         poses and velocities, as ``saveBullet`` bytes), the cars' drivetrain state, each car's
         track and surface, the episode books, the last observation, the camera's held frames and
         the generator.
         :meth:`set_state` on a core built with the same arguments continues bit for bit."""
+        worlds = []
         with tempfile.TemporaryDirectory() as tmp:
             f = os.path.join(tmp, "world.bullet")
-            p.saveBullet(f, physicsClientId=self.client)
-            world = np.fromfile(f, dtype=np.uint8)
+            for c in (self.client, *self._more_clients):
+                p.saveBullet(f, physicsClientId=c)
+                worlds.append(np.fromfile(f, dtype=np.uint8))
+        world = worlds[0]
+        extra: dict[str, Any] = {"more_worlds": worlds[1:]} if self._more_clients else {}
         books = {k: np.array(getattr(self, k), copy=True) for k in _BOOK_FIELDS}
-        extra = {}
         if self.traffic is not None:
-            extra = {"traffic": self.traffic.get_state(), "start_back": self.start_back.copy(),
+            extra = {**extra, "traffic": self.traffic.get_state(), "start_back": self.start_back.copy(),
                      "obs_all": {k: v.copy() for k, v in self._obs_all.items()}}
         return {**extra, "world": world, "fleet": self.fleet.get_state(), "books": books,
                 "surface_pick": list(self.surface_pick), "obs": {k: v.copy() for k, v in self.obs.items()},
@@ -412,10 +453,14 @@ class RaceCore:
         if self.camera is not None:  # build the visual worlds the saved client had, in its order
             for k in state.get("camera_slots", []):
                 self.camera.world(int(k))
+        more = state.get("more_worlds", [])
+        if len(more) != len(self._more_clients):
+            raise ValueError(f"saved state holds {1 + len(more)} pybullet worlds; this env has {1 + len(self._more_clients)}")
         with tempfile.TemporaryDirectory() as tmp:
             f = os.path.join(tmp, "world.bullet")
-            np.asarray(state["world"], dtype=np.uint8).tofile(f)
-            p.restoreState(fileName=f, physicsClientId=self.client)
+            for c, w in zip((self.client, *self._more_clients), (state["world"], *more)):
+                np.asarray(w, dtype=np.uint8).tofile(f)
+                p.restoreState(fileName=f, physicsClientId=c)
         for k in _BOOK_FIELDS:
             setattr(self, k, np.array(books[k], copy=True))
         self.surface_pick = list(state["surface_pick"])
@@ -468,7 +513,7 @@ class RaceCore:
             self._book_one(float(s_old[0]))
             self._observe()
             return
-        progress = np.array([t.wrap_delta(self.s[i], s_old[i]) for i, t in enumerate(self.car_tracks)]) if self.n > 1 \
+        progress = wrap_deltas(self.s, s_old, np.array([t.length for t in self.car_tracks])) if self.n > 1 \
             else self.car_tracks[0].wrap_delta(self.s, s_old)
         self.time += self.dt
         self.steps += 1
@@ -557,7 +602,8 @@ class RaceCore:
         pos = fleet.pos[:, :2] - origin  # in each car's track frame
         wheels = fleet.wheel_xy - origin[:, None, :]  # [N, 4, 2]
         if self.n <= self.scalar_locate_max_cars:
-            ids = self._locate_scalar(pos, wheels, fleet.yaw)
+            walk = self._locate_scalar if self.n <= PYTHON_WALK_MAX_CARS else self._locate_walk
+            ids = walk(pos, wheels, fleet.yaw)
             if ids is not None:
                 fleet.set_wheel_surfaces(ids)
                 return
@@ -601,6 +647,54 @@ class RaceCore:
                 ids[i, k] = sid if -w_r <= rw[1] <= w_l else grass
         return ids
 
+    def _locate_walk(self, pos: np.ndarray, wheels: np.ndarray, yaw: np.ndarray) -> np.ndarray | None:
+        """:meth:`_locate_scalar` vectorised over the cars (:meth:`Track.track_points`): the same numbers, bit for
+        bit, and the same side effects when a walk fails (the cars before the first failing one, and that car's own
+        point if it settled, are written; then ``None``)."""
+        n = self.n
+        s_new, d_new, tp_new, ang_new = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
+        ch_new = np.zeros(n, dtype=np.int64)
+        car_ok = np.zeros(n, dtype=bool)
+        all_ok = np.zeros(n, dtype=bool)
+        ids = np.empty((n, 4), dtype=np.int64)
+        tracks = self.car_tracks
+        first = tracks[0]
+        groups = [np.arange(n)] if all(t is first for t in tracks) else \
+            [np.flatnonzero([t is u for t in tracks]) for u in {id(t): t for t in tracks}.values()]
+        pi, two_pi = math.pi, 2.0 * math.pi
+        for g in groups:
+            t = tracks[g[0]]
+            tab = t._walk_table()
+            wl_, dwl = t.w_left, t._delta(t.w_left)
+            wr_, dwr = t.w_right, t._delta(t.w_right)
+            s, d, ch, u, ok = t.track_points(pos[g, 0], pos[g, 1], self.chord[g])
+            row = tab[ch]
+            nx = row[:, 4] + u * row[:, 6]
+            ny = row[:, 5] + u * row[:, 7]
+            heading = np.fromiter(map(math.atan2, (-nx).tolist(), ny.tolist()), dtype=np.float64, count=len(g))
+            wl = wl_[ch] + u * dwl[ch]
+            wr = wr_[ch] + u * dwr[ch]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                tp = np.where(d >= 0.0, d / wl, d / wr)
+            s_new[g], d_new[g], ch_new[g], tp_new[g] = s, d, ch, tp
+            ang_new[g] = (yaw[g] - heading + pi) % two_pi - pi
+            car_ok[g] = ok
+            # the wheels walk from their car's chord
+            rs, rd, rc, ru, rok = t.track_points(wheels[g, :, 0], wheels[g, :, 1], np.repeat(ch, 4))
+            w_l = wl_[rc] + ru * dwl[rc]
+            w_r = wr_[rc] + ru * dwr[rc]
+            ids[g] = np.where((-w_r <= rd) & (rd <= w_l), t.surface_ids[rc], _surf.GRASS_ID).reshape(-1, 4)
+            all_ok[g] = ok & rok.reshape(-1, 4).all(axis=1)
+        if all_ok.all():
+            self.s[:], self.d[:], self.chord[:], self.track_pos[:], self.angle[:] = s_new, d_new, ch_new, tp_new, ang_new
+            return ids
+        f = int(np.argmin(all_ok))  # the first car whose walk failed: the scalar loop wrote the cars before it
+        w = np.arange(n) < f
+        w[f] = car_ok[f]
+        for a, v in ((self.s, s_new), (self.d, d_new), (self.chord, ch_new), (self.track_pos, tp_new), (self.angle, ang_new)):
+            a[w] = v[w]
+        return None
+
     def _laps(self) -> None:
         """``lap``: full laps driven since the start (``distRaced // length``; from the grid, the
         line crossings). Lap *times* run from one start-line crossing to the next, so after a
@@ -626,6 +720,8 @@ class RaceCore:
         keys = self._all_keys
         if "rangefinder" in keys:
             on = np.abs(self.track_pos) <= 1.0
+            if self.fleet._live is not None:  # parked cars cast no beams
+                on &= ~self.fleet.parked
             xy = fleet.pos[:, :2] - self.car_origins()
             obs["rangefinder"] = self.rangefinder.read(self.slot, xy, fleet.yaw, on)
         if "opponents" in keys:
@@ -679,11 +775,13 @@ class RaceCore:
         if self.camera is not None and hasattr(self.camera, "close"):
             self.camera.close()
         if self.client is not None:
-            try:
-                p.disconnect(physicsClientId=self.client)
-            except p.error:
-                pass
+            for c in (self.client, *self._more_clients):
+                try:
+                    p.disconnect(physicsClientId=c)
+                except p.error:
+                    pass
             self.client = None
+            self._more_clients = []
 
 
 #: RaceCore's per-car episode books, saved by :meth:`RaceCore.get_state`.

@@ -321,6 +321,78 @@ class Track:
             return (s - self.length if s >= self.length else s), d, i, t
         return None
 
+    def _walk_table(self) -> np.ndarray:
+        """``[M, 8]``: per chord X, Y, EX, EY, NX, NY, MX - NX, MY - NY (what :meth:`track_point` reads)."""
+        tab = self._cache.get("walk")
+        if tab is None:
+            b = self._n_next - self._n  # the same subtractions track_point does per call
+            tab = self._cache["walk"] = np.ascontiguousarray(np.concatenate([self.xy, self._e, self._n, b], axis=1))
+        return tab
+
+    def track_points(self, x: np.ndarray, y: np.ndarray, chord: np.ndarray,
+                     max_steps: int = 64) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`track_point` for arrays of points ``x, y [P]`` walking from chords ``chord [P]``.
+
+        Returns ``(s, d, chord, t, ok) [P]``; where ``ok`` each point's ``(s, d, chord, t)`` has the bits
+        :meth:`track_point` returns for it (the same IEEE operations in the same order, elementwise, each
+        point walking as many chords as its own walk does); where not ``ok`` the walk returned ``None``
+        (the other values are then meaningless).
+        """
+        x = np.asarray(x, dtype=np.float64).reshape(-1)
+        y = np.asarray(y, dtype=np.float64).reshape(-1)
+        m = len(self.xy)
+        n_pts = len(x)
+        tab = self._walk_table()
+        s_out = np.zeros(n_pts)
+        d_out = np.zeros(n_pts)
+        c_out = np.zeros(n_pts, dtype=np.int64)
+        t_out = np.zeros(n_pts)
+        ok = np.zeros(n_pts, dtype=bool)
+        rows = np.arange(n_pts)
+        i = np.asarray(chord, dtype=np.int64).reshape(-1) % m
+        last = np.full(n_pts, -1, dtype=np.int64)
+        length = self.length
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for _ in range(max_steps):
+                if len(rows) == 0:
+                    break
+                r = tab[i]
+                qx, qy = x - r[:, 0], y - r[:, 1]
+                ex, ey, ax, ay, bx, by = r[:, 2], r[:, 3], r[:, 4], r[:, 5], r[:, 6], r[:, 7]
+                qa = -(ex * by - ey * bx)
+                qb = (qx * by - qy * bx) - (ex * ay - ey * ax)
+                qc = qx * ay - qy * ax
+                disc = qb * qb - 4.0 * qa * qc
+                sq = np.sqrt(disc)
+                qq = -0.5 * (qb + np.where(qb >= 0.0, sq, -sq))
+                t = qc / qq
+                live = ~((disc < 0.0) | (qq == 0.0))  # a failed walk stops (None)
+                prev, nxt = (i - 1) % m, (i + 1) % m
+                back = live & (t < 0.0) & (last != prev)
+                fwd = live & ~back & (t > 1.0) & (last != nxt)
+                done = live & ~back & ~fwd
+                if done.any():
+                    k = rows[done]
+                    td = t[done]
+                    td = np.where(td < 0.0, 0.0, np.where(td > 1.0, 1.0, td))
+                    axd, ayd, bxd, byd = ax[done], ay[done], bx[done], by[done]
+                    nx, ny = axd + td * bxd, ayd + td * byd
+                    d = ((qx[done] - td * ex[done]) * nx + (qy[done] - td * ey[done]) * ny) / np.sqrt(nx * nx + ny * ny)
+                    cd = i[done]
+                    s = self.s[cd] + td * self._seg_len[cd]
+                    s_out[k] = np.where(s >= length, s - length, s)
+                    d_out[k] = d
+                    c_out[k] = cd
+                    t_out[k] = td
+                    ok[k] = True
+                move = back | fwd
+                if not move.any():
+                    break
+                new_i = np.where(back, prev, nxt)[move]
+                last, i = i[move], new_i
+                rows, x, y = rows[move], x[move], y[move]
+        return s_out, d_out, c_out, t_out, ok
+
     def frame_at(self, chord: int, t: float) -> tuple[float, float, float, int]:
         """(w_left [m], w_right [m], heading [rad], surface id) at a point of chord ``chord``."""
         _, _, _, _, NX, NY, MX, MY, _, _, WL, DWL, WR, DWR, SID = self._py()

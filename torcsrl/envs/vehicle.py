@@ -56,13 +56,13 @@ Conventions
   made of ``substeps`` physics steps (default 4, i.e. 200 Hz; at least 200 Hz is required).
 
 Performance: per physics substep the fleet makes 2N state reads, one ray batch, 2N force calls
-and one ``stepSimulation``; state is read once per substep and cached. Two backends integrate
+and one ``stepSimulation`` per world; state is read once per substep and cached. Two backends integrate
 the same equations (a test checks they agree to rounding): ``"numpy"`` runs a fixed number of
 vectorised operations on ``[N, 4]`` arrays per substep, independent of N, and wins for larger
 fleets; ``"python"`` runs them car by car in floats and wins for a few cars, where numpy's ~1 us
 per call dominates (``backend="auto"`` picks by N). The public state arrays are new arrays after
 every step (never modified in place), so callers may keep them. A fleet owns the stepping of its
-pybullet client: use one fleet per client.
+pybullet clients: use one fleet per client.
 """
 
 from __future__ import annotations
@@ -70,10 +70,12 @@ from __future__ import annotations
 import bisect
 import dataclasses
 import math
-from collections.abc import Callable, Mapping
+from collections import deque
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from importlib import resources
-from typing import Any
+from itertools import chain
+from typing import Any, NamedTuple
 
 import numpy as np
 import pybullet as p
@@ -350,6 +352,24 @@ GROUND_MODELS = ("plane", "raycast")
 _MISS = (-1, -1, 9.0)  # a suspension ray that meets no ground (read as far below)
 
 
+_flat = chain.from_iterable
+
+
+class _Live(NamedTuple):
+    """The cars of a fleet still in the physics while some are parked, and their pybullet call columns."""
+
+    idx: np.ndarray
+    bodies: list
+    cids: list
+    links: list
+    frames: list
+
+
+def _consume(calls) -> None:
+    """Run an iterator of calls for their effects (``map`` over a C function: no Python frame per call)."""
+    deque(calls, maxlen=0)
+
+
 def _plane_hits(z_from: np.ndarray, z_to: np.ndarray) -> np.ndarray:
     """Hit fractions of rays from height ``z_from`` to ``z_to`` [m] with the plane z = 0 (either
     face, as bullet's ray test); 9.0 (far below: no spring force) where a ray does not reach it."""
@@ -397,11 +417,17 @@ def _skew(r: np.ndarray) -> np.ndarray:
 # The fleet
 # --------------------------------------------------------------------------------------------
 class CarFleet:
-    """N raycast cars in one pybullet client (see the module docstring for the model).
+    """N raycast cars in one pybullet client, or dealt over several (see the module docstring for the model).
 
     Args:
         client_id: pybullet physics client. The fleet sets gravity and the fixed time step on it
-            and calls ``stepSimulation``: it owns the stepping of that client.
+            and calls ``stepSimulation``: it owns the stepping of that client. A sequence of clients
+            (worlds, each with its own :func:`make_ground`) deals the cars over them in contiguous
+            blocks (car i in world ``i // ceil(N / worlds)``): a car moves in its world exactly as it
+            would in one shared world (the cars never touch each other), while each world's collision
+            broadphase only sorts through its own cars (cars that drive the same line overlap; in one
+            world the cost of the overlapping pairs grows with N^2). Several worlds need the numpy
+            backend, the plane ground and ``collide=False``.
         n_cars: number of cars N (>= 1).
         params: vehicle parameters (default: ``VehicleParams.load("default")``).
         collide: if False (default) cars pass through each other; if True their chassis collide.
@@ -426,7 +452,7 @@ class CarFleet:
 
     def __init__(
         self,
-        client_id: int,
+        client_id: int | Sequence[int],
         n_cars: int,
         params: VehicleParams | None = None,
         collide: bool = False,
@@ -453,8 +479,17 @@ class CarFleet:
         self.ground = ground
         #: "numpy" vectorises each substep over all wheels of all cars; "python" runs the same
         #: equations car by car in floats, faster for a few cars ("auto": python for N <= 4).
-        self.backend = backend if backend != "auto" else ("python" if n_cars <= PYTHON_BACKEND_MAX_CARS else "numpy")
-        self.client = int(client_id)
+        clients = [int(c) for c in client_id] if isinstance(client_id, Sequence) else [int(client_id)]
+        if not 1 <= len(clients) <= n_cars:
+            raise ValueError(f"a fleet of {n_cars} cars needs 1 to {n_cars} clients, got {len(clients)}")
+        several = len(clients) > 1
+        if several and (backend == "python" or ground != "plane" or collide):
+            raise ValueError("cars in several worlds need backend numpy (or auto), ground plane and collide=False")
+        self.backend = backend if backend != "auto" else \
+            ("python" if n_cars <= PYTHON_BACKEND_MAX_CARS and not several else "numpy")
+        #: the fleet's worlds (pybullet clients); ``client`` is the first
+        self.clients = clients
+        self.client = clients[0]
         self.n = int(n_cars)
         self.params = params if params is not None else VehicleParams.load("default")
         self.collide = bool(collide)
@@ -463,15 +498,22 @@ class CarFleet:
         self.substeps = int(substeps)
         self.dt_control = 1.0 / self.control_hz  # [s]
         self.dt = self.dt_control / self.substeps  # [s] physics step
-        cid = self.client
-        p.setGravity(0.0, 0.0, -_G, physicsClientId=cid)
-        p.setPhysicsEngineParameter(fixedTimeStep=self.dt, numSubSteps=0, physicsClientId=cid)
+        for cid in clients:
+            p.setGravity(0.0, 0.0, -_G, physicsClientId=cid)
+            p.setPhysicsEngineParameter(fixedTimeStep=self.dt, numSubSteps=0, physicsClientId=cid)
+        per = -(-self.n // len(clients))
+        # per-car argument columns of the batched pybullet calls (map over C functions): world, base link, frame
+        self._cids, self._links, self._world_frames = [clients[i // per] for i in range(self.n)], [-1] * self.n, \
+            [p.WORLD_FRAME] * self.n
         self._build_constants()
-        self.bodies: list[int] = [self._create_body() for _ in range(self.n)]
+        self.bodies: list[int] = [self._create_body(cid) for cid in self._cids]
         self.set_collide(self.collide)
         #: car-car contact impulses of the last control step [N s], ``[N, N]`` (see :meth:`track_contacts`); None: off
         self.contact_impulse: np.ndarray | None = None
         self._body_index = {b: i for i, b in enumerate(self.bodies)}
+        #: cars taken out of the physics until their next reset (:meth:`park`)
+        self.parked = np.zeros(self.n, dtype=bool)
+        self._live: _Live | None = None  # the cars still in the physics while some are parked (None: every car)
         n = self.n
         # per-car dynamic state; after a step these are new arrays (never modified in place)
         self._omega = np.zeros((n, 4))  # [rad/s] wheel spin
@@ -540,8 +582,8 @@ class CarFleet:
         self._ratios_list = self._ratios.tolist()
         self._curve_rpm_list, self._curve_nm_list = self._curve_rpm.tolist(), self._curve_nm.tolist()
 
-    def _create_body(self) -> int:
-        prm, cid = self.params, self.client
+    def _create_body(self, cid: int) -> int:
+        prm = self.params
         half = [prm.length / 2.0, prm.width / 2.0, prm.height / 2.0]
         box_center = [prm.cg_to_front_axle + prm.front_overhang - prm.length / 2.0, 0.0,
                       prm.ground_clearance + prm.height / 2.0 - prm.cg_height]
@@ -558,13 +600,18 @@ class CarFleet:
     def set_collide(self, collide: bool) -> None:
         """Switch car-car chassis collisions on or off (the ground always collides)."""
         self.collide = bool(collide)
+        if collide and len(self.clients) > 1:
+            raise ValueError("cars in different worlds cannot collide")
         mask = GROUND_GROUP | (CAR_GROUP if self.collide else 0)
-        for b in self.bodies:
-            p.setCollisionFilterGroupMask(b, -1, CAR_GROUP, mask, physicsClientId=self.client)
+        for b, cid in zip(self.bodies, self._cids):
+            if b is not None:
+                p.setCollisionFilterGroupMask(b, -1, CAR_GROUP, mask, physicsClientId=cid)
 
     def track_contacts(self, on: bool = True) -> None:
         """Record car-car contacts: after every :meth:`step`, ``contact_impulse [N, N]`` holds the impulse [N s]
         each pair of chassis exchanged over the step's physics substeps (symmetric; 0: no contact)."""
+        if on and len(self.clients) > 1:
+            raise ValueError("car-car contacts need the cars in one world")
         self.contact_impulse = np.zeros((self.n, self.n)) if on else None
 
     def _collect_contacts(self) -> None:
@@ -580,6 +627,8 @@ class CarFleet:
     def get_state(self) -> dict[str, np.ndarray]:
         """The fleet's own dynamic state (wheel spin, steer angle, gear, rpm, wheel loads, surfaces);
         the bodies' poses and velocities live in the pybullet client (``saveBullet``)."""
+        if self.parked.any():
+            raise ValueError("a fleet with parked cars cannot be saved: reset them first")
         return {k: np.array(getattr(self, k), copy=True) for k in ("_omega", "_delta", "_gear", "_rpm", "_fz", "_surface")}
 
     def set_state(self, state: Mapping[str, np.ndarray]) -> None:
@@ -642,8 +691,11 @@ class CarFleet:
             raise ValueError("reset xy, yaw and speed must be finite")
         if np.any(speed < 0):
             raise ValueError("reset speed must be >= 0 (cars drive forward)")
-        cid = self.client
+        if self.parked[idx].any():
+            self._unpark(idx[self.parked[idx]])
+        cids = self._cids
         for j, i in enumerate(idx.tolist()):
+            cid = cids[i]
             c, s = math.cos(yaw[j] / 2.0), math.sin(yaw[j] / 2.0)
             p.resetBasePositionAndOrientation(self.bodies[i], [xy[j, 0], xy[j, 1], self._ride_z], [0.0, 0.0, s, c],
                                               physicsClientId=cid)
@@ -669,13 +721,60 @@ class CarFleet:
         else:
             self._read_state()
 
+    # ---- parking ----------------------------------------------------------------------------
+    def park(self, idx: Any) -> None:
+        """Take cars ``idx`` out of the physics until their next :meth:`reset` (numpy backend): their bodies
+        leave their worlds, so they cost no state reads, force calls or integration; their state arrays
+        keep their last values, and their rows of the per-substep arithmetic are computed and dropped.
+        The other cars move as they would have (cars never touch each other), and :meth:`reset` puts a
+        parked car back as a new body (the same numbers as a body reset in place). For evaluations whose
+        cars end their episodes at different times (:func:`torcsrl.evaluate.batched.run_batch`)."""
+        idx = np.atleast_1d(np.asarray(idx, dtype=np.int64))
+        idx = idx[~self.parked[idx]]
+        if not len(idx):
+            return
+        if self.backend != "numpy":
+            raise ValueError("park needs the numpy backend")
+        for i in idx.tolist():
+            p.removeBody(self.bodies[i], physicsClientId=self._cids[i])
+            self._body_index.pop(self.bodies[i], None)  # (body ids are per world: the index serves one world)
+            self.bodies[i] = None
+        self.parked[idx] = True
+        self._relive()
+
+    def _unpark(self, idx: np.ndarray) -> None:
+        mask = GROUND_GROUP | (CAR_GROUP if self.collide else 0)
+        for i in idx.tolist():
+            cid = self._cids[i]
+            b = self._create_body(cid)
+            p.setCollisionFilterGroupMask(b, -1, CAR_GROUP, mask, physicsClientId=cid)
+            self.bodies[i] = b
+            self._body_index[b] = i
+        self.parked[idx] = False
+        self._relive()
+
+    def _relive(self) -> None:
+        if not self.parked.any():
+            self._live = None
+            return
+        live = np.flatnonzero(~self.parked)
+        pick = live.tolist()
+        self._live = _Live(live, [self.bodies[i] for i in pick], [self._cids[i] for i in pick], [-1] * len(pick),
+                           [p.WORLD_FRAME] * len(pick))
+
     # ---- state ------------------------------------------------------------------------------
     def _read_state(self) -> None:
         """numpy backend: read every car's pose and velocity once and derive the cached frames."""
         cid, n = self.client, self.n
-        gp, gv = p.getBasePositionAndOrientation, p.getBaseVelocity
-        # one row per car: position (3), quaternion xyzw (4), linear (3) and angular (3) velocity
-        raw = np.array([sum(gp(b, physicsClientId=cid) + gv(b, physicsClientId=cid), ()) for b in self.bodies])
+        live = self._live
+        bodies, cids = (self.bodies, self._cids) if live is None else (live.bodies, live.cids)
+        # one row per car: position (3), quaternion xyzw (4), linear (3) and angular (3) velocity; read car by car
+        # (pose, then velocity) and flattened in C (map, chain, fromiter: no Python frame per car)
+        parts = zip(map(p.getBasePositionAndOrientation, bodies, cids), map(p.getBaseVelocity, bodies, cids))
+        raw = np.fromiter(_flat(_flat(_flat(parts))), dtype=np.float64, count=13 * len(bodies)).reshape(-1, 13)
+        if live is not None:  # parked cars keep their last rows
+            raw, rows = self._raw.copy(), raw
+            raw[live.idx] = rows
         self._raw = raw
         quat = raw[:, 3:7]
         rot = ((quat[:, :, None] * quat[:, None, :]).reshape(n, 16) @ _QM + _QC).reshape(n, 3, 3)  # body -> world
@@ -908,12 +1007,18 @@ class CarFleet:
         f_ground = ((g * sx + 1j * (g * sy)) * rot).conj()  # (fx - i fy) in the ground frame
         forces = (f_ground[:, :, None] * ground_xy[:, None, :]).real + fz[:, :, None] * self._rot[:, None, 2, :]
         wrench = forces.reshape(n, 12) @ self._jac + aero
-        world = np.matmul(wrench.reshape(n, 2, 3), self._rot.transpose(0, 2, 1)).tolist()  # (R f, R tau)
-        pos = self._raw[:, 0:3].tolist()
-        for i, b in enumerate(self.bodies):
-            p.applyExternalForce(b, -1, world[i][0], pos[i], p.WORLD_FRAME, physicsClientId=cid)
-            p.applyExternalTorque(b, -1, world[i][1], p.WORLD_FRAME, physicsClientId=cid)
-        p.stepSimulation(physicsClientId=cid)
+        world = np.matmul(wrench.reshape(n, 2, 3), self._rot.transpose(0, 2, 1))  # (R f, R tau)
+        # every car's force, then every car's torque (each body accumulates its own: the same sums as car by car)
+        live, pos = self._live, self._raw[:, 0:3]
+        if live is None:
+            bodies, links, frames, cids = self.bodies, self._links, self._world_frames, self._cids
+        else:  # parked cars: no forces
+            bodies, links, frames, cids = live.bodies, live.links, live.frames, live.cids
+            world, pos = world[live.idx], pos[live.idx]
+        _consume(map(p.applyExternalForce, bodies, links, world[:, 0].tolist(), pos.tolist(), frames, cids))
+        _consume(map(p.applyExternalTorque, bodies, links, world[:, 1].tolist(), frames, cids))
+        for c in self.clients:
+            p.stepSimulation(physicsClientId=c)
         if self.contact_impulse is not None:
             self._collect_contacts()
         self._read_state()

@@ -2,10 +2,11 @@
 
 A report cell is ``episodes`` episodes of one degradation at one severity; the cells that share a
 policy and a track differ only in the weather. :func:`run_batch` drives them as cars of ONE
-:func:`torcsrl.envs.make_env` (N cars in one pybullet world, the physics vectorised over them): the
-cars form groups of ``episodes`` cars, each group drives one cell, and a group whose episodes have
-all ended is reset (alone) to drive the next cell waiting. The policy runs once per step on the whole
-batch, each cell's degradation stack once per step on its group's rows.
+:func:`torcsrl.envs.make_env` (N cars in pybullet worlds of :data:`CARS_PER_WORLD`, the physics
+vectorised over them): the cars form groups of ``episodes`` cars, each group drives one cell, a car
+whose episode has ended is parked (out of the physics), and a group whose episodes have all ended is
+reset (alone) to drive the next cell waiting. The policy runs once per step on the whole batch, each
+cell's degradation stack once per step on its group's rows.
 
 Every car keeps the seeds of the one-car path (:func:`torcsrl.evaluate.protocol.run_cell`), and a
 batched episode is the SAME episode, bit for bit (tested in ``tests/test_batched_eval.py``), as long
@@ -20,8 +21,11 @@ relation; see *The one exception* below):
   severity, e)`` would use;
 * **physics**: a car's dynamics do not depend on the other cars (they never collide; the numpy and
   the per-car backends compute the same numbers), and every car is located on its track by the
-  one-car env's projection (``RaceCore.scalar_locate_max_cars``: the vectorised one may put a car
-  standing exactly on the start line at s = L - ε instead of 0);
+  one-car env's chord walk (``RaceCore.scalar_locate_max_cars``; :meth:`Track.track_points` walks
+  every car at once with the walk's bits; the windowed projection may put a car standing exactly on
+  the start line at s = L - ε instead of 0). The cars are dealt over pybullet worlds of
+  :data:`CARS_PER_WORLD` (``RaceCore(cars_per_world=...)``): a car moves in its world as it would in
+  one shared world, and the collision broadphase of cars that drive the same line stays cheap;
 * **policy**: a batched matrix product does not give the same float32 bits as one row at a time
   (other kernels, other summation orders), so the actor runs as one matrix-vector product per row
   (:func:`row_linear`: ``baddbmm`` over the rows, equal to the one-car ``F.linear``);
@@ -58,7 +62,11 @@ from torcsrl.evaluate.protocol import (Degradation, EpisodeBook, default_max_ste
                                        seed_for)
 from torcsrl.policies import Policy
 
-__all__ = ["supports_batch", "row_linear", "RowActor", "run_batch"]
+__all__ = ["supports_batch", "row_linear", "RowActor", "run_batch", "CARS_PER_WORLD"]
+
+#: Cars per pybullet world of a batch (``RaceCore(cars_per_world=...)``): the cars of a grid drive the same line, and in
+#: one world the collision broadphase's cost of their overlapping boxes grows with the square of their number.
+CARS_PER_WORLD = 32
 
 
 class _PerCarDraws:
@@ -140,11 +148,14 @@ def run_batch(policy: Policy, track: str, surface: str | None, degradations: Seq
     clean cell) on one track as cars of one env; returns one list of rows per degradation, each row
     what :func:`torcsrl.evaluate.protocol.run_cell` returns for that cell and episode.
 
-    The env has ``max_cars`` cars (default: every episode at once), in groups of ``episodes`` cars:
+    The env has up to ``max_cars`` cars (default: every episode at once), in groups of ``episodes`` cars:
     a group drives the episodes of one cell side by side, and when all of them have ended it is reset
     (alone) to drive the next cell waiting, so that cars do not idle while the slowest episode of the
-    grid finishes (continuous batching). Cars whose episode has ended brake to a halt until their
-    group restarts; their steps are not booked.
+    grid finishes (continuous batching). Of the groups that fit, it makes the fewest that drive the cells
+    in as many rounds (11 cells and room for 8 groups: 6 groups, not 8 of which 5 would idle the second
+    round). Cars whose episode has ended are parked (:meth:`RaceCore.park`: out of the physics, nearly
+    free) until their group restarts; their steps are not booked. Episodes of one grid can differ in length
+    by 10x (a crash in 50 steps, a slow car truncated at the step cap), so idle cars are the rule.
     """
     from collections import deque
 
@@ -161,8 +172,10 @@ def run_batch(policy: Policy, track: str, surface: str | None, degradations: Seq
     hz = {**dict(env_kwargs or {}), **policy.env_overrides}.get("control_hz", 50.0)
     steps = int(max_steps) if max_steps else default_max_steps(geom.length, laps, 1.0 / float(hz))
     groups = max(1, min(len(degs), (int(max_cars) if max_cars else len(degs) * E) // E))
+    rounds = -(-len(degs) // groups)
+    groups = -(-len(degs) // rounds)  # the fewest groups that drive the cells in as many rounds: none idles a round
     n = groups * E
-    kw = dict(env_kwargs or {})
+    kw = {"cars_per_world": CARS_PER_WORLD, **dict(env_kwargs or {})}
     kw.update({k: v for k, v in policy.env_overrides.items() if k != "sensors"})
     sensors = env_sensors(policy)
     env = make_env(track=track, surface=surface, lap_limit=int(laps), max_steps=steps, num_cars=n, batched=True,
@@ -223,6 +236,7 @@ def run_batch(policy: Policy, track: str, surface: str | None, degradations: Seq
         src = {k: td.get(k) for k in sensors}
         views = [view(src, g, True) for g in range(groups)]
         stop = torch.tensor([0.0, -1.0])
+        can_park = core.fleet.backend == "numpy"
         while any(cell_of[g] is not None for g in range(groups)):
             obs = {k: torch.cat([v[k] for v in views]) if groups > 1 else views[0][k] for k in sensors}
             action = actor(obs)
@@ -230,7 +244,9 @@ def run_batch(policy: Policy, track: str, surface: str | None, degradations: Seq
             for g in range(groups):
                 if book_of[g] is not None:
                     idle[spans[g]] = ~book_of[g].active
-            action[torch.from_numpy(idle)] = stop  # cars whose episode has ended brake to a halt, off the books
+            action[torch.from_numpy(idle)] = stop  # cars whose episode has ended: off the books
+            if can_park and (idle & ~core.parked).any():  # ... and out of the physics until their group restarts
+                core.park(np.flatnonzero(idle & ~core.parked))
             td = env.step(TensorDict._new_unsafe({"action": action}, batch_size=torch.Size([n])))
             nxt = td.get("next")
             finished = []

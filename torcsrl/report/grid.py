@@ -95,7 +95,7 @@ class ReportConfig:
     env_kwargs: dict[str, Any] = field(default_factory=dict)
     workers: int | None = 1
     n_boot: int = 1000
-    batch_cars: int = 64
+    batch_cars: int = 128
     ray: str | None = None
 
     @classmethod
