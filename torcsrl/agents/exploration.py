@@ -41,6 +41,13 @@ from torch import nn
 from torchrl.envs.utils import ExplorationType, exploration_type
 
 
+def obs_on(td: TensorDictBase, keys: Sequence[str], device: torch.device) -> tuple[list[torch.Tensor], bool]:
+    """The observations ``keys`` of ``td`` on the actor's ``device`` (a copy only off the CPU), and whether that is the CPU."""
+    obs = [td.get(k) for k in keys]
+    on_cpu = device.type == "cpu"
+    return (obs if on_cpu else [o.to(device, non_blocking=True) for o in obs]), on_cpu
+
+
 def _exploring() -> bool:
     t = exploration_type()
     return t is None or t == ExplorationType.RANDOM
@@ -229,10 +236,7 @@ class PolicySample(TensorDictModuleBase):
 
     @torch.no_grad()
     def forward(self, td: TensorDictBase) -> TensorDictBase:
-        obs = [td.get(k) for k in self.in_keys]
-        on_cpu = self._device.type == "cpu"
-        if not on_cpu:
-            obs = [o.to(self._device, non_blocking=True) for o in obs]
+        obs, on_cpu = obs_on(td, self.in_keys, self._device)
         a = self.actor.sample(*obs)[0] if _exploring() else self.actor(*obs)
         td.set(self.action_key, a if on_cpu else a.to("cpu"))
         return td

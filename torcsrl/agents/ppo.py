@@ -24,7 +24,7 @@ from torchrl.envs import EnvBase
 from torchrl.objectives import ValueEstimators
 
 from torcsrl.agents import _build
-from torcsrl.agents.exploration import _exploring
+from torcsrl.agents.exploration import _exploring, obs_on
 from torcsrl.nets import TanhGaussianActor, ValueNet
 from torcsrl.objectives.ppo import ClipPPOLoss, PPOBatch, SquashedGaussian
 
@@ -63,10 +63,7 @@ class PPOPolicy(TensorDictModuleBase):
 
     @torch.no_grad()
     def forward(self, td: TensorDictBase) -> TensorDictBase:
-        obs = [td.get(k) for k in self.in_keys]
-        on_cpu = self._device.type == "cpu"
-        if not on_cpu:
-            obs = [o.to(self._device, non_blocking=True) for o in obs]
+        obs, on_cpu = obs_on(td, self.in_keys, self._device)
         loc, scale = self.actor.dist(*obs)
         if _exploring():
             action, log_prob = self.squash.rsample_and_log_prob(loc, scale)
