@@ -138,6 +138,51 @@ def test_imitation_baselines_train_and_evaluate_like_rl_drivers(tmp_path, demo_d
     assert rows[0]["steps"] >= 1
 
 
+def test_shards_written_apart_train_as_one_pool(tmp_path, demo_dir):
+    """demos.path=[A, B]: shards (e.g. written on two cores with different seeds) are sampled as one pool, every
+    batch in proportion to the shards' rows; BC on the pool trains; an empty list or a wrong folder fails in one line."""
+    from torcsrl.demos import DemoPool, make_demo_env
+    from torcsrl.train import make_demos, pipeline_record, train
+
+    other = write_demos(cfg_for("demos.sigma_max=0.3", "demos.episode_steps=150"), tmp_path / "other", frames=80, seed=9)
+    cfg = cfg_for(f"demos.path=[{demo_dir},{other}]")
+    env = make_demo_env(cfg, 0)
+    try:
+        pool = make_demos(cfg, env, tmp_path)
+        assert isinstance(pool, DemoPool) and len(pool) == 240 + 80 and "expert_action" in pool.extra_keys
+        batch = pool.sample(64)
+        assert batch.shape == (64,)
+        # 240:80 rows -> 48:16 of a batch of 64; the two shards' rows are told apart by their observations
+        a, b = (load_demos(p, pipeline_record(cfg, env), 8)[:]["state"] for p in (demo_dir, other))
+        in_a = (batch["state"][:, None] == a[None]).all(-1).any(-1)
+        in_b = (batch["state"][:, None] == b[None]).all(-1).any(-1)
+        assert int(in_a.sum()) == 48 and int(in_b.sum()) == 16
+        with pytest.raises(DemoError, match="empty list"):
+            make_demos(cfg_for("demos.path=[]", "demos.frames=1"), env, tmp_path)
+        with pytest.raises(DemoError, match="not a demonstration folder"):
+            make_demos(cfg_for(f"demos.path=[{demo_dir},{tmp_path / 'nowhere'}]"), env, tmp_path)
+    finally:
+        env.close()
+    res = train(cfg_for("algo=bc", f"demos.path=[{demo_dir},{other}]", "algo.bc_steps=20", f"run_dir={tmp_path / 'run'}"))
+    assert res["updates"] == 20 and res["loss/bc"] > 0
+
+
+def test_cosine_schedule_decays_each_fit_and_restarts_every_dagger_round(tmp_path, demo_dir):
+    from torcsrl.config import validate
+    from torcsrl.train import train
+    from torcsrl.utils.logging import read_csv_metric
+
+    run = tmp_path / "cos"
+    train(cfg_for("algo=dagger", f"demos.path={demo_dir}", "algo.bc_steps=20", "algo.bc_lr_schedule=cosine", "demos.dagger_rounds=1",
+                  "demos.dagger_frames=40", "logger.every_frames=5", f"run_dir={run}"))
+    lr = dict(read_csv_metric(run, "train/actor_lr"))
+    base = 1e-3  # conf/algo/bc.yaml actor_lr
+    assert lr[5] < base and lr[10] < lr[5] and lr[15] < lr[10] and lr[20] == pytest.approx(0.0, abs=1e-12)  # fit 1 decays to 0
+    assert lr[25] == pytest.approx(lr[5]) and lr[40] == pytest.approx(0.0, abs=1e-12)  # fit 2 restarts from actor_lr
+    with pytest.raises(ValueError, match="algo.bc_lr_schedule: unknown schedule 'linear'; allowed: constant, cosine"):
+        validate(cfg_for("algo=bc", "algo.bc_lr_schedule=linear"))
+
+
 def test_imitation_without_demonstrations_says_so(tmp_path):
     from torcsrl.train import train
 

@@ -355,6 +355,10 @@ def _against(ref: Any, val: Any, path: str, out: list[str], skip: Sequence[str] 
 # ---------------------------------------------------------------------------------------------------------------
 # sections
 # ---------------------------------------------------------------------------------------------------------------
+#: Learning-rate schedules of one imitation fit (algo.bc_lr_schedule; torcsrl/imitation.py).
+BC_LR_SCHEDULES = ("constant", "cosine")
+
+
 def _check_algo(algo: Any, out: list[str]) -> None:
     from torcsrl.agents import ALGOS
 
@@ -367,6 +371,8 @@ def _check_algo(algo: Any, out: list[str]) -> None:
 
     if isinstance(algo, Mapping) and "precision" in algo and algo["precision"] not in PRECISIONS:
         out.append(f"algo.precision: unknown precision {algo['precision']!r}; allowed: {', '.join(PRECISIONS)}")
+    if isinstance(algo, Mapping) and algo.get("bc_lr_schedule", "constant") not in BC_LR_SCHEDULES:
+        out.append(f"algo.bc_lr_schedule: unknown schedule {algo['bc_lr_schedule']!r}; allowed: {', '.join(BC_LR_SCHEDULES)}")
 
 
 def _check_device(device: Any, out: list[str]) -> None:

@@ -36,7 +36,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-__all__ = ["DemoError", "make_demo_env", "privileged_target", "label_rollouts", "write_demos", "load_demos", "main"]
+__all__ = ["DemoError", "DemoPool", "make_demo_env", "mixed_sample", "privileged_target", "label_rollouts", "write_demos", "load_demos", "main"]
 
 META = "demos.json"
 EXTRA_KEYS = ("expert_action", "privileged")
@@ -226,6 +226,38 @@ def load_demos(path: str | Path, record: dict[str, Any], batch_size: int, n_step
     if len(buf) == 0:
         raise DemoError(f"demonstrations {path} are empty")
     return buf
+
+
+def mixed_sample(buffers: list, batch_size: int):
+    """A batch drawn from several buffers in proportion to their sizes (the keys they all hold)."""
+    sizes = [len(b) for b in buffers]
+    total = sum(sizes)
+    counts = [batch_size * s // total for s in sizes]
+    counts[0] += batch_size - sum(counts)
+    parts = [b.sample(c) for b, c in zip(buffers, counts) if c > 0]
+    if len(parts) == 1:
+        return parts[0]
+    common = set(parts[0].keys(True, True)).intersection(*(p.keys(True, True) for p in parts[1:]))
+    return torch.cat([p.select(*common) for p in parts], 0)
+
+
+class DemoPool:
+    """Several demonstration folders sampled as one (``demos.path=[DIR, DIR, ...]``): every batch draws from each
+    folder in proportion to its rows, so shards written in parallel (``python -m torcsrl.demos seed=<k>`` on each
+    core) train like one folder of their total size. Holds the keys all folders hold."""
+
+    def __init__(self, buffers: list):
+        if not buffers:
+            raise DemoError("demos.path is an empty list; allowed: a folder or a list of folders written by python -m torcsrl.demos")
+        self.buffers = list(buffers)
+        self.batch_size = self.buffers[0].batch_size
+        self.extra_keys = [k for k in self.buffers[0].extra_keys if all(k in b.extra_keys for b in self.buffers[1:])]
+
+    def __len__(self) -> int:
+        return sum(len(b) for b in self.buffers)
+
+    def sample(self, batch_size: int | None = None):
+        return mixed_sample(self.buffers, int(batch_size or self.batch_size))
 
 
 def main() -> None:

@@ -23,25 +23,12 @@ from tensordict.nn import TensorDictModule
 __all__ = ["train"]
 
 
-def _mixed_sample(buffers: list, batch_size: int):
-    """A batch drawn from several buffers in proportion to their sizes (the keys they all hold)."""
-    sizes = [len(b) for b in buffers]
-    total = sum(sizes)
-    counts = [batch_size * s // total for s in sizes]
-    counts[0] += batch_size - sum(counts)
-    parts = [b.sample(c) for b, c in zip(buffers, counts) if c > 0]
-    if len(parts) == 1:
-        return parts[0]
-    common = set(parts[0].keys(True, True)).intersection(*(p.keys(True, True) for p in parts[1:]))
-    return torch.cat([p.select(*common) for p in parts], 0)
-
-
 def train(cfg: DictConfig) -> dict[str, Any]:
     from torcsrl import agents
     from torcsrl.agents._build import bc_step
     from torcsrl.agents.exploration import DeviceActorModule
     from torcsrl.agents.networks import split_obs_keys
-    from torcsrl.demos import EXTRA_KEYS, PRIVILEGED_SLOTS, DemoError, label_rollouts, make_demo_env
+    from torcsrl.demos import EXTRA_KEYS, PRIVILEGED_SLOTS, DemoError, label_rollouts, make_demo_env, mixed_sample
     from torcsrl.objectives.common import ObsUnpacker
     from torcsrl.train import _run_dir, expected_meta, make_demos, make_eval_envs, make_train_env, pipeline_record, validate_all
     from torcsrl.utils.checkpoint import checkpoint_path, latest_checkpoint, prune, save_checkpoint
@@ -89,6 +76,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
             aux = (head, aux_w)
         rounds = int(cfg.demos.dagger_rounds) if algo == "dagger" else 0
         steps_per_fit, batch_size, precision = int(cfg.algo.bc_steps), int(cfg.algo.batch_size), str(cfg.algo.precision)
+        lr_schedule = str(cfg.algo.get("bc_lr_schedule", "constant"))
         updates = frames = 0
         result: dict[str, Any] = {}
         print(f"[torcsrl] imitation ({algo}) on {len(demos)} demonstration frames, {rounds} DAgger rounds; outputs in {run_dir}", file=sys.stderr)
@@ -109,11 +97,20 @@ def train(cfg: DictConfig) -> dict[str, Any]:
                 log_metrics(loggers, {"train/dagger_round": rnd, "train/dagger_beta": beta, "train/episodes": stats["episodes"],
                                       "train/terminated": stats["terminated"]}, updates)
             t0 = time.perf_counter()
+            # a fresh schedule per fit: the cosine restarts from actor_lr every DAgger round (SGDR-style)
+            sched = None
+            if lr_schedule == "cosine":
+                for g in optim["actor"].param_groups:  # back to actor_lr (torch's cosine is chained: it starts from the current lr)
+                    g["lr"] = g.setdefault("initial_lr", g["lr"])
+                sched = torch.optim.lr_scheduler.CosineAnnealingLR(optim["actor"], steps_per_fit)
             for i in range(steps_per_fit):
-                bc, smooth = bc_step(net, optim, _mixed_sample(buffers, batch_size).to(device), precision, cfg.algo, aux)
+                bc, smooth = bc_step(net, optim, mixed_sample(buffers, batch_size).to(device), precision, cfg.algo, aux)
+                if sched is not None:
+                    sched.step()
                 updates += 1
                 if updates % int(cfg.logger.every_frames) == 0:
                     log_metrics(loggers, {"loss/bc": float(bc), **{k: float(v) for k, v in smooth.items()}, "time/updates_per_s": (i + 1) / (time.perf_counter() - t0),
+                                          "train/actor_lr": optim["actor"].param_groups[0]["lr"],
                                           "train/frames": frames, "train/buffer_size": sum(len(b) for b in buffers)}, updates)
             actor.eval()
             ev = validate_all(eval_envs, policy, int(cfg.eval.episodes), int(cfg.eval.max_steps))

@@ -266,20 +266,24 @@ def make_buffer(cfg: DictConfig, run_dir: Path) -> ReplayBuffer:
 def make_demos(cfg: DictConfig, env: EnvBase, run_dir: Path) -> ReplayBuffer | None:
     """The demonstrations this run learns from (:mod:`torcsrl.demos`), or None.
 
-    ``demos.path``: a folder written by ``python -m torcsrl.demos``; else ``demos.frames > 0`` writes that many
-    DART frames of the expert in this run's env into ``<run_dir>/demos`` (once: a resumed run reuses them).
+    ``demos.path``: a folder written by ``python -m torcsrl.demos``, or a list of them (shards written in parallel,
+    sampled as one :class:`~torcsrl.demos.DemoPool`); else ``demos.frames > 0`` writes that many DART frames of the
+    expert in this run's env into ``<run_dir>/demos`` (once: a resumed run reuses them).
     Refused (one line) when their observation layout or pipeline differs from this run's."""
     d = cfg.get("demos")
-    if d is None or (not d.path and int(d.frames) <= 0):
+    if d is None or (d.path in (None, "") and int(d.frames) <= 0):
         return None
-    from torcsrl.demos import load_demos, write_demos
+    from torcsrl.demos import DemoPool, load_demos, write_demos
 
     if cfg.buffer.prioritized:
         raise ValueError("demos with buffer.prioritized=true are not supported (the demo rows have no priorities); use one or the other")
+    record, kw = pipeline_record(cfg, env), dict(n_steps=int(cfg.algo.n_steps), gamma=float(cfg.algo.gamma))
+    if d.path is not None and not isinstance(d.path, str):  # a list of shards
+        return DemoPool([load_demos(p, record, int(cfg.algo.batch_size), **kw) for p in d.path])
     path = Path(d.path) if d.path else Path(run_dir) / "demos"
     if not d.path and not (path / "demos.json").is_file():
         save_dir_atomically(path, lambda tmp: write_demos(cfg, tmp))
-    return load_demos(path, pipeline_record(cfg, env), int(cfg.algo.batch_size), n_steps=int(cfg.algo.n_steps), gamma=float(cfg.algo.gamma))
+    return load_demos(path, record, int(cfg.algo.batch_size), **kw)
 
 
 def sample_batch(buffer: ReplayBuffer, demos: ReplayBuffer | None, n_demo: int):

@@ -9,9 +9,10 @@ reset (alone) to drive the next cell waiting. The policy runs once per step on t
 cell's degradation stack once per step on its group's rows.
 
 Every car keeps the seeds of the one-car path (:func:`torcsrl.evaluate.protocol.run_cell`), and a
-batched episode is the SAME episode, bit for bit (tested in ``tests/test_batched_eval.py``), as long
-as no two cars of the batch touch the ground with their chassis in the same physics substep (the exact
-relation; see *The one exception* below):
+batched episode is the SAME episode as its one-car run in what the policy sees and does (float32
+observations, actions, rows; tested in ``tests/test_batched_eval.py``), though not in the last bits of
+the float64 physics (see *physics*), as long as no two cars of the batch touch the ground with their
+chassis in the same physics substep (see *The exceptions* below):
 
 * **starts**: a reset draws each car's start (random start arc length, spawn jitter) from the
   generator a one-car env seeded with its episode's env seed ``seed_for(seed, "env", track,
@@ -19,8 +20,12 @@ relation; see *The one exception* below):
 * **weather**: each cell's stack draws per row (:meth:`torcsrl.transforms.Degradation.set_row_seeds`),
   row ``e`` from the generator a one-car stack seeded with ``seed_for(seed, "degradation", name,
   severity, e)`` would use;
-* **physics**: a car's dynamics do not depend on the other cars (they never collide; the numpy and
-  the per-car backends compute the same numbers), and every car is located on its track by the
+* **physics**: a car's dynamics do not depend on the other cars (they never collide), but the numpy
+  backend that moves all cars at once does not reproduce the per-car path's float64 bits (batched
+  matrix products sum in another order, and the number of rows changes the kernel): the state
+  differs from the first step by ~1e-16 relative, far below what the float32 observations resolve.
+  Rarely that reaches the float32 bits: on the #17 reduced grid 8 of 88 episodes had one beam one
+  float32 ulp off (return ~4e-10 relative), so a row may differ in its last digit. Every car is located on its track by the
   one-car env's chord walk (``RaceCore.scalar_locate_max_cars``; :meth:`Track.track_points` walks
   every car at once with the walk's bits; the windowed projection may put a car standing exactly on
   the start line at s = L - ε instead of 0). The cars are dealt over pybullet worlds of
