@@ -364,7 +364,14 @@ def _check_algo(algo: Any, out: list[str]) -> None:
 
     ref = _load_ref("algo/base.yaml")
     per_dim = tuple(f"algo.exploration.{k}" for k in ("sigma", "theta", "mu"))
-    _against(ref, algo, "algo", out, source="conf/algo/base.yaml", per_dim=per_dim)
+    _against(ref, algo, "algo", out, source="conf/algo/base.yaml", per_dim=per_dim, skip=("algo.encoder.augment_shift",))
+    shift = algo.get("encoder", {}).get("augment_shift", 0) if isinstance(algo, Mapping) else 0
+    try:
+        from torcsrl.nets import shift_pad
+
+        shift_pad(shift)
+    except ValueError as err:
+        out.append(f"algo.{err}")
     if isinstance(algo, Mapping) and algo.get("name") not in (*ALGOS, "???"):
         out.append(f"algo.name: unknown algorithm {algo.get('name')!r}; allowed: {', '.join(ALGOS)}")
     from torcsrl.agents._build import PRECISIONS

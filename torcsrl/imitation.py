@@ -28,6 +28,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     from torcsrl.agents._build import bc_step
     from torcsrl.agents.exploration import DeviceActorModule
     from torcsrl.agents.networks import split_obs_keys
+    from torcsrl.nets import shift_pad
     from torcsrl.demos import EXTRA_KEYS, PRIVILEGED_SLOTS, DemoError, label_rollouts, make_demo_env, mixed_sample
     from torcsrl.objectives.common import ObsUnpacker
     from torcsrl.train import _run_dir, expected_meta, make_demos, make_eval_envs, make_train_env, pipeline_record, validate_all
@@ -60,7 +61,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         eval_envs = make_eval_envs(cfg)
         loggers = make_loggers(cfg.logger.backends, run_dir, cfg.logger.exp_name, cfg.logger.wandb_project, cfg.logger.wandb_mode)
         _, img = split_obs_keys(env.observation_spec, obs_keys)
-        net = SimpleNamespace(actor_network=actor, obs=ObsUnpacker(obs_keys, img, int(cfg.algo.encoder.augment_shift)))
+        net = SimpleNamespace(actor_network=actor, obs=ObsUnpacker(obs_keys, img, shift_pad(cfg.algo.encoder.augment_shift)))
         policy = TensorDictModule(actor, in_keys=obs_keys, out_keys=["action"]) if device.type == "cpu" else \
             DeviceActorModule(actor, obs_keys, ["action"], device)
         learner = actor if device.type == "cpu" else (lambda *obs: actor(*(o.to(device) for o in obs)).cpu())

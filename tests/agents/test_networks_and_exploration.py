@@ -192,3 +192,31 @@ def test_random_shift_equals_a_crop_of_the_replicate_padded_frame_at_the_drawn_o
     for i in range(5):
         r, c = off[i].tolist()
         assert torch.equal(out[i], padded[i, :, r:r + 7, c:c + 11].to(torch.uint8))
+
+
+def test_random_shift_per_axis_pads_shift_each_axis_by_its_own_range():
+    """augment_shift=[rows, cols]: [4, 0] moves frames vertically only (a steering label stays true), [1, 3] each axis
+    within its own range; shift_pad refuses what is not a pad in one line."""
+    from torcsrl.nets import shift_pad
+
+    img = torch.randint(0, 256, (64, 3, 9, 13), dtype=torch.uint8)
+    padded = torch.nn.functional.pad(img.float(), (0, 0, 4, 4), mode="replicate")
+    out = random_shift(img, shift_pad([4, 0]), generator=torch.Generator().manual_seed(1))
+    rows = []
+    for i in range(64):  # every output frame is a vertical crop of its padded frame, columns in place
+        hit = [r for r in range(9) if torch.equal(out[i], padded[i, :, r:r + 9].to(torch.uint8))]
+        assert hit
+        rows.append(hit[0])
+    assert len(set(rows)) > 4  # offsets are drawn
+    padded = torch.nn.functional.pad(img.float(), (3, 3, 1, 1), mode="replicate")
+    out = random_shift(img, (1, 3), generator=torch.Generator().manual_seed(2))
+    offs = set()
+    for i in range(64):
+        hit = [(r, c) for r in range(3) for c in range(7) if torch.equal(out[i], padded[i, :, r:r + 9, c:c + 13].to(torch.uint8))]
+        assert hit
+        offs |= {hit[0]}
+    assert {r for r, _ in offs} <= {0, 1, 2} and len({c for _, c in offs}) > 4
+    assert shift_pad(4) == (4, 4) and shift_pad([4, 0]) == (4, 0) and shift_pad([2]) == (2, 2)
+    for bad in (-1, [1, 2, 3], "x", 1.5):
+        with pytest.raises(ValueError, match="expected a pad in pixels"):
+            shift_pad(bad)

@@ -17,7 +17,7 @@ from torchrl.envs import EnvBase
 from torchrl.objectives import LossModule, SoftUpdate
 
 from torcsrl.agents.exploration import ActionNoise, BehaviourPolicy, DeviceActorModule, ParamNoiseActor, StochasticBrake
-from torcsrl.nets import Critic, DeterministicActor, ObsEncoder, split_obs_keys
+from torcsrl.nets import Critic, DeterministicActor, ObsEncoder, shift_pad, split_obs_keys
 
 
 def action_bounds(env: EnvBase) -> tuple[torch.Tensor, torch.Tensor]:
@@ -51,7 +51,7 @@ def loss_kwargs(cfg: Any, env: EnvBase, obs_keys: list[str], critic_obs_keys: li
     low, high = action_bounds(env)
     _, img = split_obs_keys(env.observation_spec, obs_keys)
     out = dict(obs_keys=list(obs_keys), image_keys=img, action_low=low, action_high=high, gamma=float(cfg.gamma),
-               augment_shift=int(cfg.encoder.augment_shift))
+               augment_shift=shift_pad(cfg.encoder.augment_shift))
     if critic_obs_keys is not None and list(critic_obs_keys) != list(obs_keys):
         _, cimg = split_obs_keys(env.observation_spec, critic_obs_keys)
         out.update(critic_obs_keys=list(critic_obs_keys), critic_image_keys=cimg)

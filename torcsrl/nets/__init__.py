@@ -12,7 +12,7 @@ losses call them), so neither package imports the other.
 
 from torcsrl.nets.actors import DeterministicActor, TanhGaussianActor
 from torcsrl.nets.critics import Critic, EnsembleLinear, ValueNet, ensemble_linear
-from torcsrl.nets.encoders import ObsEncoder, RunningNorm, mlp, mlp_forward, random_shift, split_obs_keys
+from torcsrl.nets.encoders import ObsEncoder, RunningNorm, mlp, mlp_forward, random_shift, shift_pad, split_obs_keys
 
 __all__ = ["Critic", "DeterministicActor", "EnsembleLinear", "ObsEncoder", "RunningNorm", "TanhGaussianActor", "ValueNet",
-           "ensemble_linear", "mlp", "mlp_forward", "random_shift", "split_obs_keys"]
+           "ensemble_linear", "mlp", "mlp_forward", "random_shift", "shift_pad", "split_obs_keys"]

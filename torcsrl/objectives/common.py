@@ -8,7 +8,7 @@ import torch
 from tensordict import TensorDictBase, TensorDictParams
 from torch import nn
 
-from torcsrl.nets import random_shift
+from torcsrl.nets import random_shift, shift_pad
 
 
 def bind_target(module: nn.Module, target_params: TensorDictParams) -> nn.Module:
@@ -37,18 +37,18 @@ class ObsUnpacker:
     Args:
         keys: observation keys in the order the networks take them.
         image_keys: the subset of ``keys`` that are images (augmented when ``shift > 0``).
-        shift: DrQ random-shift padding in pixels (0 = no augmentation).
+        shift: DrQ random-shift padding in pixels (0 = no augmentation), or ``(rows, cols)`` (:func:`shift_pad`).
     """
 
-    def __init__(self, keys: list[str], image_keys: list[str], shift: int = 0):
-        self.keys, self.image_keys, self.shift = list(keys), set(image_keys), int(shift)
+    def __init__(self, keys: list[str], image_keys: list[str], shift: int | tuple[int, int] = 0):
+        self.keys, self.image_keys, self.shift = list(keys), set(image_keys), shift_pad(shift)
 
     def __call__(self, td: TensorDictBase, nxt: bool = False) -> list[torch.Tensor]:
         src = td.get("next") if nxt else td
         out = []
         for k in self.keys:
             x = src.get(k)
-            if self.shift and k in self.image_keys:
+            if any(self.shift) and k in self.image_keys:
                 x = random_shift(x, self.shift)
             out.append(x)
         return out
