@@ -99,6 +99,25 @@ def test_multisync_collector_two_workers_on_their_own_tracks(tmp_path):
     assert r["frames"] >= 200 and r["updates"] > 0 and math.isfinite(r["loss/qvalue"])
 
 
+def test_worker_collector_leaves_the_learner_its_threads(tmp_path):
+    """TorchRL's MultiSyncCollector sets the learner to max(1, threads - workers) unless told: make_collector tells it."""
+    from torchrl.envs.utils import RandomPolicy
+
+    from torcsrl.train import make_collector, make_train_env
+
+    cfg = cfg_for("algo=td3", "collector.num_workers=2", "threads=2")
+    torch.set_num_threads(2)
+    env = make_train_env(cfg)
+    try:
+        col = make_collector(cfg, env, RandomPolicy(env.action_spec))
+        try:
+            assert col.num_threads == 2 and torch.get_num_threads() == 2
+        finally:
+            col.shutdown()
+    finally:
+        env.close()
+
+
 def test_exact_resume_after_sigkill(tmp_path):
     """A run killed with SIGKILL and resumed from its last checkpoint logs exactly what the uninterrupted run logs."""
     ov = ["algo=d4pg", "buffer.prioritized=true", "algo.exploration.kind=ou", "algo.exploration.theta=[0.6,1.0]",

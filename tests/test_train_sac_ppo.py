@@ -94,6 +94,7 @@ def test_race_env_sac_with_demonstrations_and_smoothness_and_ppo_evaluate_like_t
     (["algo=sac", "algo.policy_noise=0.2"], "algo.policy_noise=0.2: TD3's target policy smoothing does not apply to algo=sac"),
     (["algo=ppo", "demos.frames=100"], "demos: algo=ppo learns on-policy from its own rollouts and does not support demonstrations"),
     (["algo=ppo", "buffer.prioritized=true"], "buffer.prioritized=true: algo=ppo has no replay buffer and does not support prioritised"),
+    (["algo=ppo", "algo.encoder.augment_shift=4"], "algo.encoder.augment_shift=4: algo=ppo does not augment its images"),
 ])
 def test_options_that_do_not_apply_are_refused_in_one_line(overrides, line):
     with pytest.raises(ConfigError) as err:

@@ -475,6 +475,16 @@ def _check_algo_fit(c: Mapping, out: list[str]) -> None:
                    f"processes; allowed: a divisor of {cars} ({divisors}), or 0")
     if c.get("critic_obs_keys"):
         out.append("critic_obs_keys: algo=ppo's value network sees the actor's observations; allowed: null")
+    enc = algo.get("encoder") if isinstance(algo.get("encoder"), Mapping) else {}
+    try:
+        from torcsrl.nets import shift_pad
+
+        shifted = any(shift_pad(enc.get("augment_shift", 0)))
+    except ValueError:
+        shifted = False  # reported by _check_algo
+    if shifted:
+        out.append(f"algo.encoder.augment_shift={enc.get('augment_shift')}: algo=ppo does not augment its images (no DrQ/DrAC in its "
+                   f"update: the ratio is that of the frame it acted on); allowed: 0, {other}")
     brake = algo.get("stochastic_brake") if isinstance(algo.get("stochastic_brake"), Mapping) else {}
     if brake.get("enabled"):
         out.append("algo.stochastic_brake.enabled=true: algo=ppo's update needs the log-probability of the action taken, which the "

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import sys
 import time
+import warnings
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -107,7 +108,9 @@ def train(cfg: DictConfig) -> dict[str, Any]:
             for i in range(steps_per_fit):
                 bc, smooth = bc_step(net, optim, mixed_sample(buffers, batch_size).to(device), precision, cfg.algo, aux)
                 if sched is not None:
-                    sched.step()
+                    with warnings.catch_warnings():  # FusedAdam.fast_step bypasses the step counter torch's check reads
+                        warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step()`")
+                        sched.step()
                 updates += 1
                 if updates % int(cfg.logger.every_frames) == 0:
                     log_metrics(loggers, {"loss/bc": float(bc), **{k: float(v) for k, v in smooth.items()}, "time/updates_per_s": (i + 1) / (time.perf_counter() - t0),

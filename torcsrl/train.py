@@ -381,7 +381,9 @@ def make_collector(cfg: DictConfig, env: EnvBase, policy, collected: int = 0) ->
     fns = [functools.partial(make_train_env, cfg, i) for i in range(int(c.num_workers))]
     return MultiSyncCollector(fns, policy, frames_per_batch=fpb * int(c.num_workers), total_frames=-1,
                               init_random_frames=max(0, int(c.init_random_frames) - int(collected)),
-                              exploration_type=ExplorationType.RANDOM)
+                              exploration_type=ExplorationType.RANDOM,
+                              # the learner keeps cfg.threads (TorchRL otherwise sets max(1, threads - workers) silently)
+                              num_threads=torch.get_num_threads(), num_sub_threads=1)
 
 
 def enter_stage(cfg: DictConfig, frames: int, env: EnvBase, collector, eval_envs: dict[str, EnvBase], policy, buffer: ReplayBuffer):
