@@ -33,6 +33,14 @@ def demo_dir(tmp_path_factory):
     return out
 
 
+@pytest.fixture(scope="module")
+def other_shard(tmp_path_factory):
+    """A second, smaller shard (another seed): demos.path=[demo_dir, other_shard] is a pool."""
+    out = tmp_path_factory.mktemp("demos") / "other"
+    write_demos(cfg_for("demos.sigma_max=0.3", "demos.episode_steps=150"), out, frames=80, seed=9)
+    return out
+
+
 def test_demos_store_the_executed_action_and_the_experts_label(demo_dir):
     meta = json.loads((demo_dir / "demos.json").read_text())
     assert meta["frames"] == 240 and meta["record"]["obs_layout"] == "rangefinder:19,state:11"
@@ -124,28 +132,36 @@ def test_actor_regularisers_pull_towards_labels_and_smooth():
 
 
 @pytest.mark.parametrize("algo", ["bc", "dagger"])
-def test_imitation_baselines_train_and_evaluate_like_rl_drivers(tmp_path, demo_dir, algo):
+def test_imitation_baselines_train_and_evaluate_like_rl_drivers(tmp_path, demo_dir, other_shard, algo):
+    """BC (on a pool of two shards) and DAgger (with the cosine schedule: it decays each fit to 0 and restarts every
+    round) train, and their checkpoints drive like RL drivers'."""
     from torcsrl.evaluate import run_cell
     from torcsrl.policies import load_policy
     from torcsrl.train import train
+    from torcsrl.utils.logging import read_csv_metric
 
-    res = train(cfg_for(f"algo={algo}", f"demos.path={demo_dir}", "algo.bc_steps=40", "demos.dagger_rounds=1", "demos.dagger_frames=60",
-                        f"run_dir={tmp_path / algo}"))
+    demos = f"demos.path=[{demo_dir},{other_shard}]" if algo == "bc" else f"demos.path={demo_dir}"
+    res = train(cfg_for(f"algo={algo}", demos, "algo.bc_steps=40", "demos.dagger_rounds=1", "demos.dagger_frames=60",
+                        "algo.bc_lr_schedule=cosine", "logger.every_frames=10", f"run_dir={tmp_path / algo}"))
     assert res["updates"] == 40 * (2 if algo == "dagger" else 1)
     assert res["frames"] == (60 if algo == "dagger" else 0)
+    lr = dict(read_csv_metric(tmp_path / algo, "train/actor_lr"))
+    assert 0 < lr[30] < lr[20] < lr[10] < 1e-3 and lr[40] == pytest.approx(0.0, abs=1e-12)  # fit 1 decays from actor_lr to 0
+    if algo == "dagger":
+        assert lr[50] == pytest.approx(lr[10]) and lr[80] == pytest.approx(0.0, abs=1e-12)  # fit 2 restarts from actor_lr
     pol = load_policy(str(tmp_path / algo))
     rows, _ = run_cell(pol, "oval", laps=1, max_steps=20, env_kwargs={"control_hz": 10, "substeps": 20})
     assert rows[0]["steps"] >= 1
 
 
-def test_shards_written_apart_train_as_one_pool(tmp_path, demo_dir):
+def test_shards_written_apart_sample_as_one_pool(tmp_path, demo_dir, other_shard):
     """demos.path=[A, B]: shards (e.g. written on two cores with different seeds) are sampled as one pool, every
-    batch in proportion to the shards' rows; BC on the pool trains; an empty list or a wrong folder fails in one line."""
+    batch in proportion to the shards' rows; an empty list or a wrong folder fails in one line."""
+    from torcsrl.config import validate
     from torcsrl.demos import DemoPool, make_demo_env
-    from torcsrl.train import make_demos, pipeline_record, train
+    from torcsrl.train import make_demos, pipeline_record
 
-    other = write_demos(cfg_for("demos.sigma_max=0.3", "demos.episode_steps=150"), tmp_path / "other", frames=80, seed=9)
-    cfg = cfg_for(f"demos.path=[{demo_dir},{other}]")
+    cfg = cfg_for(f"demos.path=[{demo_dir},{other_shard}]")
     env = make_demo_env(cfg, 0)
     try:
         pool = make_demos(cfg, env, tmp_path)
@@ -153,7 +169,7 @@ def test_shards_written_apart_train_as_one_pool(tmp_path, demo_dir):
         batch = pool.sample(64)
         assert batch.shape == (64,)
         # 240:80 rows -> 48:16 of a batch of 64; the two shards' rows are told apart by their observations
-        a, b = (load_demos(p, pipeline_record(cfg, env), 8)[:]["state"] for p in (demo_dir, other))
+        a, b = (load_demos(p, pipeline_record(cfg, env), 8)[:]["state"] for p in (demo_dir, other_shard))
         in_a = (batch["state"][:, None] == a[None]).all(-1).any(-1)
         in_b = (batch["state"][:, None] == b[None]).all(-1).any(-1)
         assert int(in_a.sum()) == 48 and int(in_b.sum()) == 16
@@ -163,22 +179,6 @@ def test_shards_written_apart_train_as_one_pool(tmp_path, demo_dir):
             make_demos(cfg_for(f"demos.path=[{demo_dir},{tmp_path / 'nowhere'}]"), env, tmp_path)
     finally:
         env.close()
-    res = train(cfg_for("algo=bc", f"demos.path=[{demo_dir},{other}]", "algo.bc_steps=20", f"run_dir={tmp_path / 'run'}"))
-    assert res["updates"] == 20 and res["loss/bc"] > 0
-
-
-def test_cosine_schedule_decays_each_fit_and_restarts_every_dagger_round(tmp_path, demo_dir):
-    from torcsrl.config import validate
-    from torcsrl.train import train
-    from torcsrl.utils.logging import read_csv_metric
-
-    run = tmp_path / "cos"
-    train(cfg_for("algo=dagger", f"demos.path={demo_dir}", "algo.bc_steps=20", "algo.bc_lr_schedule=cosine", "demos.dagger_rounds=1",
-                  "demos.dagger_frames=40", "logger.every_frames=5", f"run_dir={run}"))
-    lr = dict(read_csv_metric(run, "train/actor_lr"))
-    base = 1e-3  # conf/algo/bc.yaml actor_lr
-    assert lr[5] < base and lr[10] < lr[5] and lr[15] < lr[10] and lr[20] == pytest.approx(0.0, abs=1e-12)  # fit 1 decays to 0
-    assert lr[25] == pytest.approx(lr[5]) and lr[40] == pytest.approx(0.0, abs=1e-12)  # fit 2 restarts from actor_lr
     with pytest.raises(ValueError, match="algo.bc_lr_schedule: unknown schedule 'linear'; allowed: constant, cosine"):
         validate(cfg_for("algo=bc", "algo.bc_lr_schedule=linear"))
 
