@@ -85,8 +85,9 @@ def summarise(rows: list[dict], expert: dict[tuple[str, str], float], generated:
     return out
 
 
-def table(summary: list[dict]) -> str:
-    lines = ["| driver | surface | set:heldout completed | generated completed | median lap / expert | median flips/km |",
+def table(summary: list[dict], bundled: str = "set:heldout") -> str:
+    """The summary as markdown; ``bundled``: the name of the bundled track set driven (``set:train`` in a --screen)."""
+    lines = [f"| driver | surface | {bundled} completed | generated completed | median lap / expert | median flips/km |",
              "|---|---|---|---|---|---|"]
     for s in summary:
         gen = f"{s['generated_completed']}/{s['generated_total']} ({100 * s['generated_completed'] / max(s['generated_total'], 1):.0f} %)"
@@ -205,11 +206,12 @@ def main(argv: list[str] | None = None) -> int:
     summary = summarise(rows, expert, set(generated))
     print(f"\n{len(rows)} trials of {args.laps} laps in {time.perf_counter() - t0:.0f} s; generated: {generated[0]}..{generated[-1]}"
           if generated else "")
-    print(table(summary))
+    bundled = "set:train" if args.screen else "set:heldout"
+    print(table(summary, bundled))
     out.mkdir(parents=True, exist_ok=True)
     (out / "generalisation.json").write_text(json.dumps({"rows": rows, "summary": summary, "expert_hz": exp_specs,
                                                          "expert": {f"{k[0]}|{k[1]}": v for k, v in expert.items()}}, indent=1))
-    (out / "generalisation.md").write_text(table(summary) + "\n")
+    (out / "generalisation.md").write_text(table(summary, bundled) + "\n")
     print(f"wrote {out / 'generalisation.md'}")
     return 0
 
