@@ -109,7 +109,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
                 bc, smooth = bc_step(net, optim, mixed_sample(buffers, batch_size).to(device), precision, cfg.algo, aux)
                 if sched is not None:
                     with warnings.catch_warnings():  # FusedAdam.fast_step bypasses the step counter torch's check reads
-                        warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step()`")
+                        warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step\\(\\)` before")
                         sched.step()
                 updates += 1
                 if updates % int(cfg.logger.every_frames) == 0:
