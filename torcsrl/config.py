@@ -359,17 +359,22 @@ def _against(ref: Any, val: Any, path: str, out: list[str], skip: Sequence[str] 
 BC_LR_SCHEDULES = ("constant", "cosine")
 
 
+def _shift_pads(algo: Any) -> tuple[int, int]:
+    """``algo.encoder.augment_shift`` as (rows, cols) pads (:func:`torcsrl.nets.shift_pad`; ValueError when it is none)."""
+    from torcsrl.nets import shift_pad
+
+    enc = algo.get("encoder") if isinstance(algo, Mapping) and isinstance(algo.get("encoder"), Mapping) else {}
+    return shift_pad(enc.get("augment_shift", 0))
+
+
 def _check_algo(algo: Any, out: list[str]) -> None:
     from torcsrl.agents import ALGOS
 
     ref = _load_ref("algo/base.yaml")
     per_dim = tuple(f"algo.exploration.{k}" for k in ("sigma", "theta", "mu"))
     _against(ref, algo, "algo", out, source="conf/algo/base.yaml", per_dim=per_dim, skip=("algo.encoder.augment_shift",))
-    shift = algo.get("encoder", {}).get("augment_shift", 0) if isinstance(algo, Mapping) else 0
     try:
-        from torcsrl.nets import shift_pad
-
-        shift_pad(shift)
+        _shift_pads(algo)
     except ValueError as err:
         out.append(f"algo.{err}")
     if isinstance(algo, Mapping) and algo.get("name") not in (*ALGOS, "???"):
@@ -475,15 +480,12 @@ def _check_algo_fit(c: Mapping, out: list[str]) -> None:
                    f"processes; allowed: a divisor of {cars} ({divisors}), or 0")
     if c.get("critic_obs_keys"):
         out.append("critic_obs_keys: algo=ppo's value network sees the actor's observations; allowed: null")
-    enc = algo.get("encoder") if isinstance(algo.get("encoder"), Mapping) else {}
     try:
-        from torcsrl.nets import shift_pad
-
-        shifted = any(shift_pad(enc.get("augment_shift", 0)))
+        shifted = any(_shift_pads(algo))
     except ValueError:
         shifted = False  # reported by _check_algo
     if shifted:
-        out.append(f"algo.encoder.augment_shift={enc.get('augment_shift')}: algo=ppo does not augment its images (no DrQ/DrAC in its "
+        out.append(f"algo.encoder.augment_shift={algo['encoder']['augment_shift']}: algo=ppo does not augment its images (no DrQ/DrAC in its "
                    f"update: the ratio is that of the frame it acted on); allowed: 0, {other}")
     brake = algo.get("stochastic_brake") if isinstance(algo.get("stochastic_brake"), Mapping) else {}
     if brake.get("enabled"):
