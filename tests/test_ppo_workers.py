@@ -92,3 +92,60 @@ def test_a_car_count_the_workers_cannot_share_is_refused_in_one_line():
     assert "collector.num_workers=4: algo=ppo splits env.num_cars=6 cars evenly over the worker processes; allowed: a divisor of 6 " \
            "(1, 2, 3, 6), or 0" in msg
     validate(cfg_for("env.num_cars=6", "collector.num_workers=3"))  # a divisor passes
+
+
+def test_policy_lag_collects_while_the_learner_updates_and_gives_the_same_batches(tmp_path):
+    """collector.policy_lag=1: TorchRL's MultiAsyncCollector. The loop still gets [cars, T] batches of all cars (two
+    workers' batches joined along the cars; one car a worker: stacked), each step with the log-probability of its action
+    as drawn, and the worker has started its next rollout before the learner asks for it."""
+    from torchrl.collectors import MultiAsyncCollector
+
+    cfg = cfg_for("env.num_cars=4", "collector.num_workers=2", "collector.policy_lag=1", f"run_dir={tmp_path}")
+    torch.manual_seed(0)
+    env = make_train_env(worker_config(cfg, 2))
+    agent, keys = agents.get("ppo"), list(cfg.env.sensors)
+    actor, critic, _ = make_networks(cfg, agent, env, keys, torch.device("cpu"))
+    policy = agent.make_exploration(cfg.algo, actor, env, keys)
+    collector = make_rollout_collector(cfg, env, policy, 2, 1)
+    assert isinstance(collector.collector, MultiAsyncCollector) and collector.lag == 1
+    try:
+        batches = iter(collector)
+        for _ in range(2):
+            data = next(batches)
+            assert tuple(data.batch_size) == (4, 20)
+            # every row is one car's contiguous steps: a step starts where the one before ended, unless an episode ended
+            obs, nxt = data.get(keys[0]), data.get(("next", keys[0]))
+            done = data.get(("next", "done")).squeeze(-1)
+            joined = (nxt[:, :-1] == obs[:, 1:]).flatten(2).all(-1)
+            assert bool((joined | done[:, :-1]).all()) and bool(joined.any())
+            # the log-probabilities are those of the acting weights (the learner's have not moved yet)
+            with torch.no_grad():
+                loc, scale = actor.dist(*[data.get(k) for k in keys])
+                again = policy.squash.log_prob(loc, scale, data.get("action"))
+            torch.testing.assert_close(again.reshape(4, 20), data.get("action_log_prob"), rtol=1e-3, atol=1e-3)
+    finally:
+        collector.shutdown()
+        env.close()
+
+
+def test_ppo_smoke_run_with_policy_lag(tmp_path):
+    ov = ["env.num_cars=2", "collector.num_workers=1", "collector.policy_lag=1", "logger.every_frames=40",
+          "checkpoint.every_frames=40", f"run_dir={tmp_path}"]
+    r = train(cfg_for(*ov, "total_frames=120"))
+    assert r["frames"] == 120 and r["updates"] == 3 * 2 * 2
+    rows = read_csv_metric(tmp_path, "loss/critic")
+    assert [s for s, _ in rows] == [40, 80, 120] and all(math.isfinite(v) for _, v in rows)
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (["collector.num_workers=1", "collector.policy_lag=2"], "collector.policy_lag=2: rollouts of policy lag while the learner updates; "
+                                                            "allowed: 0 (collect, then update) or 1"),
+    (["collector.policy_lag=1"], "collector.policy_lag=1 needs worker processes to collect while this one updates; allowed: "
+                                 "collector.num_workers>=1 (got 0), or policy_lag=0"),
+    (["algo=td3", "collector.num_workers=1", "collector.policy_lag=1"], "collector.policy_lag=1: the workers collect the next rollout "
+                                                                       "during the update only for algo=ppo (algo=td3"),
+])
+def test_a_policy_lag_that_cannot_apply_is_refused_in_one_line(overrides, message):
+    with pytest.raises(ConfigError) as err:
+        validate(cfg_for("env.num_cars=2", *overrides))
+    assert str(err.value).count("\n") == 0 and message in str(err.value), str(err.value)

@@ -442,6 +442,16 @@ def _check_algo_fit(c: Mapping, out: list[str]) -> None:
     CPU only."""
     algo = c.get("algo") if isinstance(c.get("algo"), Mapping) else {}
     name = algo.get("name")
+    col = c.get("collector") if isinstance(c.get("collector"), Mapping) else {}
+    lag = col.get("policy_lag", 0)
+    if lag not in (0, 1, None) or isinstance(lag, bool):
+        out.append(f"collector.policy_lag={lag!r}: rollouts of policy lag while the learner updates; allowed: 0 (collect, then update) or 1")
+    elif lag == 1 and name != "ppo":
+        out.append(f"collector.policy_lag=1: the workers collect the next rollout during the update only for algo=ppo (algo={name} "
+                   "collects a step between updates); allowed: 0, or algo=ppo")
+    elif lag == 1 and not (_is_num(col.get("num_workers")) and col["num_workers"] >= 1):
+        out.append(f"collector.policy_lag=1 needs worker processes to collect while this one updates; allowed: collector.num_workers>=1 "
+                   f"(got {col.get('num_workers')}), or policy_lag=0")
     if name not in ("sac", "ppo"):
         return
     why = f"algo={name} explores by sampling its own policy"

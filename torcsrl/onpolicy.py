@@ -32,7 +32,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
-from torchrl.collectors import MultiSyncCollector
+from torchrl.collectors import MultiAsyncCollector, MultiSyncCollector
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
@@ -197,14 +197,26 @@ class WorkerRollouts:
     batches of the workers joined along the cars: ``[num_cars, rollout_steps]`` (worker 0's cars first), as the
     in-process :class:`~torcsrl.utils.collector.StepCollector` gives them, so GAE runs along time per car.
 
+    ``lag=1`` (``collector.policy_lag=1``): TorchRL's ``MultiAsyncCollector`` instead. A worker starts its next rollout
+    as soon as it has handed one over, so the workers collect rollout k+1 while the learner updates on rollout k (the
+    update and the env run on different cores at once). Each batch is ``workers`` worker batches as they arrive, joined
+    along the cars (a batch may then hold two consecutive rollouts of one fast worker's cars: every row is still one
+    car's contiguous steps). Rollout k+1 starts with the weights of update k-1; update k's weights reach the workers
+    while they drive it (TorchRL's shared-memory sync applies them as they arrive). Every step carries the
+    log-probability of its action as drawn, so PPO's ratio is taken against the policy that acted: the clipped
+    objective with one rollout of policy lag, as in asynchronous PPO (APPO). Not bit-reproducible: where in a rollout
+    the new weights land depends on timing.
+
     :meth:`update_policy_weights_` gives the workers the learner policy's parameters AND buffers (the observation
     statistics of :class:`~torcsrl.nets.RunningNorm`): TorchRL's shared-memory weight sync copies them into the shared
     buffers and waits for each worker to apply them. The loop calls it after every update (and after a resume), and
     the workers collect only when asked (``MultiSyncCollector``), so every rollout is collected with the weights of the
     update before it, as in one process."""
 
-    def __init__(self, collector: MultiSyncCollector):
+    def __init__(self, collector: MultiSyncCollector | MultiAsyncCollector, workers: int = 1):
         self.collector = collector
+        self.lag = int(isinstance(collector, MultiAsyncCollector))
+        self.workers = workers
         self._batches = None
 
     def __iter__(self):
@@ -212,6 +224,11 @@ class WorkerRollouts:
         return self
 
     def __next__(self) -> TensorDictBase:
+        if self.lag:  # one worker's batch at a time, [cars a worker, T] (one car a worker: [T]): join `workers` of them
+            parts = [next(self._batches) for _ in range(self.workers)]
+            for part in parts:
+                part.names = None
+            return torch.stack(parts, 0) if parts[0].ndim == 1 else torch.cat(parts, 0)
         data = next(self._batches)  # [workers, cars a worker, T]; one car a worker: [workers, T]
         data.names = None
         return data.flatten(0, 1) if data.ndim == 3 else data
@@ -241,8 +258,10 @@ def make_rollout_collector(cfg: DictConfig, env: EnvBase, policy, workers: int, 
         return StepCollector(env, policy, per_env)
     wcfg = worker_config(cfg, workers)
     fns = [functools.partial(_worker_env, wcfg, i) for i in range(workers)]
-    return WorkerRollouts(MultiSyncCollector(fns, policy, frames_per_batch=per_env * workers, total_frames=-1, cat_results="stack",
-                                             exploration_type=ExplorationType.RANDOM, num_threads=threads, num_sub_threads=1))
+    common = dict(total_frames=-1, exploration_type=ExplorationType.RANDOM, num_threads=threads, num_sub_threads=1)
+    if int(cfg.collector.get("policy_lag", 0) or 0):  # the workers collect the next rollout during the update
+        return WorkerRollouts(MultiAsyncCollector(fns, policy, frames_per_batch=per_env, **common), workers)
+    return WorkerRollouts(MultiSyncCollector(fns, policy, frames_per_batch=per_env * workers, cat_results="stack", **common), workers)
 
 
 def _save(cfg, ckpt_dir, meta, counters, loss, actor, critic, optim, collector, env, eval_envs, threads) -> Path:
