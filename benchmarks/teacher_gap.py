@@ -39,6 +39,8 @@ def main(argv: list[str] | None = None) -> int:
     pol = CheckpointPolicy(a.checkpoint)
     cfg = OmegaConf.create(torch.load(a.checkpoint, map_location="cpu", weights_only=False)["config"])
     cfg.env.track, cfg.env.surface = a.track, a.surface
+    if "procedural" in cfg.env:  # a student of a procedural pool (track=procedural) drove pool tracks 80 % of the time
+        cfg.env.procedural = None
     env = make_demo_env(cfg, a.seed)
     core = env.base_env.core
     teacher = make_teacher(a.teacher)
