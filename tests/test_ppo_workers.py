@@ -96,8 +96,9 @@ def test_a_car_count_the_workers_cannot_share_is_refused_in_one_line():
 
 def test_policy_lag_collects_while_the_learner_updates_and_gives_the_same_batches(tmp_path):
     """collector.policy_lag=1: TorchRL's MultiAsyncCollector. The loop still gets [cars, T] batches of all cars (two
-    workers' batches joined along the cars; one car a worker: stacked), each step with the log-probability of its action
-    as drawn, and the worker has started its next rollout before the learner asks for it."""
+    workers' batches joined along the cars), every row one car's contiguous steps, each step with the log-probability
+    of its action as drawn. (That the worker collects during the update is a matter of timing: measured by
+    benchmarks/train_throughput.py's ppo+w1+lag, not asserted here.)"""
     from torchrl.collectors import MultiAsyncCollector
 
     cfg = cfg_for("env.num_cars=4", "collector.num_workers=2", "collector.policy_lag=1", f"run_dir={tmp_path}")

@@ -5,7 +5,8 @@ checkpoint pieces with): env (``env.num_cars`` cars in one world), agent (tanh-G
 (TorchRL's ``ClipPPOLoss`` with ``GAE``, computed on tensors: :mod:`torcsrl.objectives.ppo`), collector (batches
 of ``rollout_steps`` steps of every car, ``[cars, rollout_steps]``: :class:`~torcsrl.utils.collector.StepCollector` in
 this process, or with ``collector.num_workers`` W >= 1 :class:`WorkerRollouts`, W processes of ``env.num_cars / W``
-cars each, the policy's weights and observation statistics synced to them before every rollout), optimisers; then
+cars each, the policy's weights and observation statistics synced to them before every rollout; with
+``collector.policy_lag=1`` they collect the next rollout during the update, APPO-style), optimisers; then
 per batch: GAE advantages and value targets -> the batch as tensors (:meth:`~torcsrl.objectives.ppo.ClipPPOLoss.batch`)
 -> ``epochs`` passes of shuffled minibatches of ``batch_size`` (:func:`torcsrl.agents.ppo.update`; one permutation an
 epoch, the minibatches are its slices) -> the observation statistics take in the batch (after the epochs, so the update
