@@ -235,3 +235,41 @@ def test_sensor_teacher_steers_smoothly_through_esses_at_10_hz(surface):
     assert new[0]["success"] and old[0]["success"]
     assert new[0]["steer_flips_per_km"] <= 30.0 < old[0]["steer_flips_per_km"], (new[0]["steer_flips_per_km"], old[0]["steer_flips_per_km"])
     assert new[0]["fastest_lap"] < old[0]["fastest_lap"]
+
+
+def test_pedal_expectile_leans_the_fit_towards_braking():
+    """algo.bc_pedal_expectile=tau: where one observation carries both labels (brake -1 and throttle +1, half each),
+    squared error fits the pedal to their mean 0 and the expectile fit to 2 tau - 1 (the tau-expectile of +-1);
+    steering stays the squared-error fit. Out-of-range tau, or tau with an RL algo, fails in one line."""
+    from types import SimpleNamespace
+
+    from tensordict import TensorDict
+
+    from torcsrl.agents._build import bc_step
+    from torcsrl.config import validate
+
+    class Const(torch.nn.Module):  # the smallest actor: one free action
+        def __init__(self):
+            super().__init__()
+            self.a = torch.nn.Parameter(torch.zeros(2))
+
+        def forward(self, x):
+            return self.a.expand(x.shape[0], 2)
+
+    labels = torch.tensor([[0.3, -1.0], [0.3, 1.0]]).repeat(32, 1)
+    batch = TensorDict({"state": torch.zeros(64, 1), "expert_action": labels}, [64])
+    fits = {}
+    for tau in (0.5, 0.2):
+        actor = Const()
+        net = SimpleNamespace(actor_network=actor, obs=lambda b: (b["state"],))
+        optim = {"actor": torch.optim.SGD(actor.parameters(), lr=0.2)}
+        for _ in range(300):
+            bc_step(net, optim, batch, "float32", SimpleNamespace(bc_pedal_expectile=tau))
+        fits[tau] = actor.a.detach()
+    assert fits[0.5][1] == pytest.approx(0.0, abs=1e-4) and fits[0.2][1] == pytest.approx(2 * 0.2 - 1, abs=1e-3)
+    assert fits[0.2][0] == pytest.approx(0.3, abs=1e-4) and fits[0.5][0] == pytest.approx(0.3, abs=1e-4)
+    with pytest.raises(ValueError, match=r"algo.bc_pedal_expectile: 1.0 is out of range; allowed: \(0, 1\)"):
+        validate(cfg_for("algo=bc", "algo.bc_pedal_expectile=1.0"))
+    with pytest.raises(ValueError, match="algo.bc_pedal_expectile=0.2: the pedal expectile shapes the imitation fit of algo=bc / dagger only"):
+        validate(cfg_for("algo=td3", "algo.bc_pedal_expectile=0.2"))
+    validate(cfg_for("algo=dagger", "algo.bc_pedal_expectile=0.2"))

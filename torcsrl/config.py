@@ -43,7 +43,7 @@ EXTRA_TOP_KEYS = {"optimized_metric": (str, type(None))}
 GROUP_SECTIONS = ("algo", "env", "logger", "degradation", "curriculum")
 #: env keys that train() sets itself (seed + 1000 (worker + 1), cpu).
 ENV_KEYS_SET_BY_TRAIN = ("seed", "device")
-#: (low, high, what) bounds of numbers; None = unbounded; "open" excludes the low end.
+#: (low, high, what) bounds of numbers; None = unbounded; "open" excludes the low end, "both-open" both ends.
 RANGES: dict[str, tuple[float | None, float | None, str]] = {
     "total_frames": (1, None, "closed"),
     "seed": (0, None, "closed"),
@@ -79,6 +79,7 @@ RANGES: dict[str, tuple[float | None, float | None, str]] = {
     "demos.dagger_beta": (0.0, 1.0, "closed"),
     "algo.bc_steps": (1, None, "closed"),
     "algo.aux_privileged": (0.0, None, "closed"),
+    "algo.bc_pedal_expectile": (0.0, 1.0, "both-open"),
     "algo.smooth.temporal": (0.0, None, "closed"),
     "algo.smooth.spatial": (0.0, None, "closed"),
     "algo.smooth.spatial_sigma": (0.0, None, "closed"),
@@ -338,10 +339,11 @@ def _against(ref: Any, val: Any, path: str, out: list[str], skip: Sequence[str] 
         if ok and path in RANGES:
             lo, hi, kind = RANGES[path]
             for x in nums:
-                if (lo is not None and (x < lo or (kind == "open" and x == lo))) or (hi is not None and x > hi):
+                if (lo is not None and (x < lo or (kind in ("open", "both-open") and x == lo))) or \
+                        (hi is not None and (x > hi or (kind == "both-open" and x == hi))):
                     lo_s = "-inf" if lo is None else f"{lo:g}"
                     hi_s = "inf" if hi is None else f"{hi:g}"
-                    out.append(f"{path}: {x!r} is out of range; allowed: {'(' if kind == 'open' else '['}{lo_s}, {hi_s}]")
+                    out.append(f"{path}: {x!r} is out of range; allowed: {'[(('[kind in ('open', 'both-open')]}{lo_s}, {hi_s}{'])'[kind == 'both-open']}")
                     return
     elif isinstance(ref, str):
         ok = isinstance(val, str) or _is_num(val)
@@ -452,6 +454,15 @@ def _check_algo_fit(c: Mapping, out: list[str]) -> None:
     elif lag == 1 and not (_is_num(col.get("num_workers")) and col["num_workers"] >= 1):
         out.append(f"collector.policy_lag=1 needs worker processes to collect while this one updates; allowed: collector.num_workers>=1 "
                    f"(got {col.get('num_workers')}), or policy_lag=0")
+    tau = algo.get("bc_pedal_expectile", 0.5)
+    if _is_num(tau) and tau != 0.5:
+        env = c.get("env") if isinstance(c.get("env"), Mapping) else {}
+        if name not in ("bc", "dagger"):
+            out.append(f"algo.bc_pedal_expectile={tau}: the pedal expectile shapes the imitation fit of algo=bc / dagger only "
+                       f"(algo={name}); allowed: 0.5, or algo=bc / dagger")
+        elif env.get("action_mode") not in (None, "combined"):
+            out.append(f"algo.bc_pedal_expectile={tau} weighs action 1 as a pedal (< 0 = brake), which env.action_mode="
+                       f"{env.get('action_mode')} does not have; allowed: 0.5, or env.action_mode=combined")
     if name not in ("sac", "ppo"):
         return
     why = f"algo={name} explores by sampling its own policy"

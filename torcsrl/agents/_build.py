@@ -264,6 +264,9 @@ def bc_step(loss: LossModule, optim: dict, batch, precision: str = "float32", re
     regress the teacher's privileged view stored in the batch (:data:`torcsrl.demos.PRIVILEGED_SLOTS`), an
     auxiliary task that makes a camera encoder learn the road's geometry; the head is not part of the actor.
 
+    ``reg.bc_pedal_expectile`` = tau != 0.5 fits the pedal (action 1) by expectile regression: an error above the
+    label (too little braking) weighs ``2 (1 - tau)``, one below ``2 tau`` (tau = 0.5 is the squared error).
+
     Returns (the regression loss, the smoothness metrics ``loss/smooth_*`` and ``loss/aux``), detached.
     """
     with precision_context(precision, batch.device or "cpu"):
@@ -271,7 +274,13 @@ def bc_step(loss: LossModule, optim: dict, batch, precision: str = "float32", re
         obs = loss.obs(batch)
         feats = actor.encoder(*obs) if aux is not None else None
         action = actor(*obs) if aux is None else actor.act(feats)
-        bc = (action.float() - batch.get("expert_action")).pow(2).sum(-1).mean()
+        err = action.float() - batch.get("expert_action")
+        tau = float(getattr(reg, "bc_pedal_expectile", 0.5) if reg is not None else 0.5)
+        if tau != 0.5:  # expectile regression of the pedal: braking too little (err > 0) weighs (1 - tau) / tau as much
+            w = torch.where(err[..., 1] > 0, 2.0 * (1.0 - tau), 2.0 * tau)
+            bc = (err[..., 0].pow(2) + w * err[..., 1].pow(2) + err[..., 2:].pow(2).sum(-1)).mean()
+        else:
+            bc = err.pow(2).sum(-1).mean()
         total, extra = (bc, {}) if reg is None else actor_regularisers(loss, batch, action, None, bc, reg)
         if aux is not None:
             head, weight = aux
