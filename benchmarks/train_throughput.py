@@ -9,8 +9,7 @@ warm-up, for each torch thread count asked for.
 A contender ``<algo>+bf16`` runs ``<algo>`` with ``algo.precision=bfloat16`` (mixed-precision
 updates; fast only where the CPU has bfloat16 units, which the header line reports); ``ppo+w2`` runs PPO with
 ``collector.num_workers=2`` (the same ``--cars`` split over 2 worker processes); they combine: ``ppo+w2+bf16``;
-``ppo+w1+lag`` adds ``collector.policy_lag=1`` (the worker collects the next rollout while the learner updates);
-``+tcol`` runs TorchRL's stock ``Collector`` in the workers (``collector.worker_loop=torchrl``) instead of the lean loop.
+``ppo+w1+lag`` adds ``collector.policy_lag=1`` (the worker collects the next rollout while the learner updates).
 
 The box is shared, so absolute figures drift with the load. What counts is the RATIO to SB3
 measured side by side: each round runs every contender once (SB3 first on even rounds, last
@@ -79,10 +78,8 @@ def ours(name: str, threads: int, steps: int, warmup: int, extra: list[str], car
             extra = [*extra, f"collector.num_workers={int(v[1:])}"]
         elif v == "lag" and algo == "ppo":
             extra = [*extra, "collector.policy_lag=1"]
-        elif v == "tcol" and algo == "ppo":
-            extra = [*extra, "collector.worker_loop=torchrl"]
         else:
-            raise SystemExit(f"unknown contender {name!r}; allowed: <algo>, <algo>+bf16, ppo+w<N>[+lag][+tcol][+bf16]")
+            raise SystemExit(f"unknown contender {name!r}; allowed: <algo>, <algo>+bf16, ppo+w<N>[+lag][+bf16]")
     run = tempfile.mkdtemp(prefix=f"tp_{algo}_")
     every = max(50, steps // 5)
     if algo == "ppo":  # the race env, cars in one world; frames counted over all cars

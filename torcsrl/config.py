@@ -446,8 +446,6 @@ def _check_algo_fit(c: Mapping, out: list[str]) -> None:
     name = algo.get("name")
     col = c.get("collector") if isinstance(c.get("collector"), Mapping) else {}
     lag = col.get("policy_lag", 0)
-    if col.get("worker_loop", "lean") not in ("lean", "torchrl"):
-        out.append(f"collector.worker_loop={col.get('worker_loop')!r}: unknown worker collector; allowed: lean, torchrl")
     if lag not in (0, 1, None) or isinstance(lag, bool):
         out.append(f"collector.policy_lag={lag!r}: rollouts of policy lag while the learner updates; allowed: 0 (collect, then update) or 1")
     elif lag == 1 and name != "ppo":

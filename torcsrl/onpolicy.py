@@ -54,7 +54,7 @@ from torcsrl.train import (
     validate_all,
 )
 from torcsrl.utils.checkpoint import CheckpointError, checkpoint_path, latest_checkpoint, load_checkpoint, previous_good, prune, save_checkpoint
-from torcsrl.utils.collector import StepCollector, worker_collector_class
+from torcsrl.utils.collector import StepCollector
 from torcsrl.utils.logging import Progress, log_metrics, make_loggers, truncate_csv_after
 from torcsrl.utils.seeding import rng_state, seed_everything, set_rng_state
 from torcsrl.utils.threads import configure_threads, process_cpu_s
@@ -259,8 +259,7 @@ def make_rollout_collector(cfg: DictConfig, env: EnvBase, policy, workers: int, 
         return StepCollector(env, policy, per_env)
     wcfg = worker_config(cfg, workers)
     fns = [functools.partial(_worker_env, wcfg, i) for i in range(workers)]
-    common = dict(total_frames=-1, exploration_type=ExplorationType.RANDOM, num_threads=threads, num_sub_threads=1,
-                  collector_class=worker_collector_class(cfg))
+    common = dict(total_frames=-1, exploration_type=ExplorationType.RANDOM, num_threads=threads, num_sub_threads=1)
     if int(cfg.collector.get("policy_lag", 0) or 0):  # the workers collect the next rollout during the update
         return WorkerRollouts(MultiAsyncCollector(fns, policy, frames_per_batch=per_env, **common), workers)
     return WorkerRollouts(MultiSyncCollector(fns, policy, frames_per_batch=per_env * workers, cat_results="stack", **common), workers)

@@ -63,7 +63,7 @@ from torcsrl.utils.checkpoint import (
     save_checkpoint,
     save_dir_atomically,
 )
-from torcsrl.utils.collector import StepCollector, worker_collector_class
+from torcsrl.utils.collector import StepCollector
 from torcsrl.utils.faults import claim_run_dir, exit_code, graceful_termination, os_error_line, writable_folder
 from torcsrl.utils.replay import ReplayBuffer
 from torcsrl.utils.logging import Progress, log_metrics, make_loggers, truncate_csv_after
@@ -383,8 +383,7 @@ def make_collector(cfg: DictConfig, env: EnvBase, policy, collected: int = 0) ->
                               init_random_frames=max(0, int(c.init_random_frames) - int(collected)),
                               exploration_type=ExplorationType.RANDOM,
                               # the learner keeps cfg.threads (TorchRL otherwise sets max(1, threads - workers) silently)
-                              num_threads=torch.get_num_threads(), num_sub_threads=1,
-                              collector_class=worker_collector_class(cfg))
+                              num_threads=torch.get_num_threads(), num_sub_threads=1)
 
 
 def enter_stage(cfg: DictConfig, frames: int, env: EnvBase, collector, eval_envs: dict[str, EnvBase], policy, buffer: ReplayBuffer):

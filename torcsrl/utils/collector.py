@@ -22,16 +22,13 @@ its output buffer) — as much as a quarter of a TD3 step on the project's CPU.
 * its state (frames and the in-flight tensordict: exploration-noise state and the running
   return included) is checkpointable for an exact resume.
 
-Multi-process collection stays with TorchRL's ``MultiSyncCollector`` / ``MultiAsyncCollector``; their workers run
-:class:`LeanCollector` (``collector_class=LeanCollector``): TorchRL's ``Collector`` (its construction, weight sync,
-shared output buffer and worker protocol) with this module's step loop in ``rollout``.
+Multi-process collection stays with TorchRL's ``MultiSyncCollector``.
 """
 
 from __future__ import annotations
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.collectors import Collector
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
@@ -109,66 +106,3 @@ class StepCollector:
         self.frames = int(state["frames"])
         if carrier:
             self._carrier.update(TensorDict.from_dict(state["carrier"], batch_size=self.env.batch_size))
-
-
-class LeanCollector(Collector):
-    """TorchRL's ``Collector`` for the workers of ``MultiSyncCollector`` / ``MultiAsyncCollector``
-    (``collector_class=LeanCollector``), its per-step loop replaced by :class:`StepCollector`'s.
-
-    Everything around the loop is TorchRL's: the policy built in the worker and its weight sync, the output
-    buffer in shared memory, random frames, trajectory ids, truncation of the last step, the worker protocol.
-    The loop keeps what a batch of rollouts needs — policy (``ExplorationType`` of the collector),
-    ``env.step_and_maybe_reset``, the carrier, new trajectory ids where an episode ended — and gives the same
-    batches as ``Collector`` (tested key by key). Where it would need more (device casts between policy and env,
-    a replay buffer written by the worker, resets at every batch, a compiled or interruptible policy, hooks,
-    compacted observations) ``Collector.rollout`` runs instead. Measured in ``benchmarks/ppo_paths.py``.
-    """
-
-    def rollout(self) -> TensorDictBase:
-        if (self._cast_to_policy_device or self._cast_to_env_device or self.replay_buffer is not None or self.reset_at_each_iter
-                or self.compiled_policy or self.cudagraphed_policy or self.interruptor is not None or self.pre_collect_hook is not None
-                or self._compact_next_keys):
-            return super().rollout()
-        env, policy, keys = self.env, self._wrapped_policy, self._policy_output_keys
-        track = self.track_traj_ids
-        ids = self._carrier.get(("collector", "traj_ids")) if track else None
-        if track and self._use_buffers:
-            self._final_rollout.fill_(("collector", "traj_ids"), -1)
-        steps = []
-        with set_exploration_type(self.exploration_type):
-            for _ in range(self.frames_per_batch):
-                td = self._carrier
-                if self._should_use_random_frames():
-                    env.rand_action(td)
-                else:
-                    out = policy(td)
-                    if out is not td:
-                        td.update(out, keys_to_update=keys)
-                step, carrier = env.step_and_maybe_reset(td)
-                if self._carrier_has_no_device:
-                    carrier.clear_device_()
-                if track:  # a car whose episode ended drives a new trajectory from the next step (Collector._update_traj_ids)
-                    done = step.get(("next", "done")).reshape(ids.shape)
-                    if done.any():
-                        ids = ids.masked_scatter(done, self._traj_pool.get_traj_and_increment(done.sum(), device=done.device))
-                    carrier.set(("collector", "traj_ids"), ids)
-                self._carrier = carrier
-                steps.append(step)
-        if self._use_buffers:
-            result = torch.stack(steps, self._final_rollout.ndim - 1, out=self._final_rollout)
-        else:
-            result = TensorDict.maybe_dense_stack(steps, dim=-1)
-            result.refine_names(..., "time")
-        return self._maybe_set_truncated(result)
-
-
-#: ``collector.worker_loop`` -> the collector class of the worker processes.
-WORKER_LOOPS = {"lean": LeanCollector, "torchrl": Collector}
-
-
-def worker_collector_class(cfg) -> type:
-    """The worker processes' collector class named by ``cfg.collector.worker_loop`` (default ``lean``)."""
-    name = cfg.collector.get("worker_loop", "lean")
-    if name not in WORKER_LOOPS:
-        raise ValueError(f"collector.worker_loop={name!r}: unknown worker collector; allowed: {', '.join(WORKER_LOOPS)}")
-    return WORKER_LOOPS[name]
