@@ -275,6 +275,10 @@ class Camera:
         width, height: image size [px].
         fov_deg: vertical field of view [deg].
         mount: ``"hood"`` | ``"chase"`` | ``"top"`` or a :class:`Mount`.
+        hfov_deg: horizontal field of view [deg]; None: square pixels (``width / height`` times the vertical
+            field's tangent). With a horizontal field wider than the pixels' aspect, each row covers fewer degrees:
+            e.g. 96x64 at ``fov_deg=30, hfov_deg=81`` resolves the far road with twice the rows of ``fov_deg=60``.
+        pitch_deg: camera tilt below the chassis' x axis [deg], replacing the mount's (hood: 8).
         renderer: ``"auto"`` | ``"tiny"`` | ``"egl"``, or a :class:`Renderer` already set up on
             this client (cameras of one client can share it).
         near, far: clip planes [m]; depth readings lie in [near, far].
@@ -298,8 +302,15 @@ class Camera:
     def __init__(self, client_id: int, width: int = 84, height: int = 84, fov_deg: float = 60.0,
                  mount: str | Mount = "hood", renderer: str | Renderer = "auto", near: float = 0.1,
                  far: float = 300.0, every: int = 1, worlds: Sequence[World] = (), draw_distance: float | None = None,
-                 vehicle: Any = None, background: bool = True, cull: bool = True) -> None:
+                 vehicle: Any = None, background: bool = True, cull: bool = True, hfov_deg: float | None = None,
+                 pitch_deg: float | None = None) -> None:
         self.mount = mount_for(mount, vehicle)  # validates the name first
+        if pitch_deg is not None:
+            if not -30.0 <= pitch_deg <= 90.0:
+                raise ValueError(f"pitch_deg must lie in [-30, 90] (tilt below the chassis' x axis), got {pitch_deg}")
+            self.mount = replace(self.mount, pitch_deg=float(pitch_deg))
+        if hfov_deg is not None and not 1.0 <= hfov_deg <= 170.0:
+            raise ValueError(f"hfov_deg must lie in [1, 170] or be null (square pixels), got {hfov_deg}")
         if int(width) != width or int(height) != height or width < 1 or height < 1:
             raise ValueError(f"width and height must be positive integers, got {width}x{height}")
         if not 1.0 <= fov_deg <= 170.0:
@@ -320,7 +331,11 @@ class Camera:
         else:
             self._renderer, self._owns_renderer = setup_renderer(self.client, renderer), True
         self.worlds: list[World] = list(worlds)
-        aspect = self.width / self.height
+        # square pixels unless a horizontal field is given (then a pixel spans more degrees across than down: the
+        # rows go to the distance, where the road narrows into few of them, while both road edges stay in view)
+        aspect = self.width / self.height if hfov_deg is None else \
+            math.tan(math.radians(hfov_deg) / 2.0) / math.tan(math.radians(self.fov_deg) / 2.0)
+        self.hfov_deg = math.degrees(2.0 * math.atan(math.tan(math.radians(self.fov_deg) / 2.0) * aspect))
         self._proj = p.computeProjectionMatrixFOV(self.fov_deg, aspect, self.near, self.far)
         tan_v = math.tan(math.radians(self.fov_deg) / 2.0)
         tan_h = tan_v * aspect
@@ -345,8 +360,9 @@ class Camera:
         self._remap_cache: dict[str, np.ndarray] = {}
         self._held: tuple[np.ndarray, np.ndarray] | None = None
         self._count: np.ndarray | None = None
-        log.info("camera: %dx%d, fov %.0f deg, mount %s, renderer %s, near %.2f m, far %.0f m, every %d",
-                 self.width, self.height, self.fov_deg, self.mount.name, self.renderer, self.near, self.far, self.every)
+        log.info("camera: %dx%d, fov %.0f x %.0f deg, mount %s (pitch %.0f deg), renderer %s, near %.2f m, far %.0f m, every %d",
+                 self.width, self.height, self.hfov_deg, self.fov_deg, self.mount.name, self.mount.pitch_deg, self.renderer, self.near,
+                 self.far, self.every)
 
     # ---- info ----------------------------------------------------------------------------------
     @property
@@ -561,7 +577,7 @@ class CarCameras:
     Args:
         client_id: the core's pybullet client.
         sim: the race core (see above).
-        width, height, fov_deg, mount, renderer, near, far, every, draw_distance: see :class:`Camera`.
+        width, height, fov_deg, mount, renderer, near, far, every, draw_distance, hfov_deg, pitch_deg: see :class:`Camera`.
         style: :class:`~torcsrl.envs.world.WorldStyle` or a mapping of its fields.
         max_worlds: visual worlds kept built besides those a car is on (least recently used removed first). Each
             world's decor costs every physics step (pybullet steps every body of the client: 313 control steps/s
@@ -572,7 +588,7 @@ class CarCameras:
     def __init__(self, client_id: int, sim: Any, width: int = 84, height: int = 84, fov_deg: float = 60.0,
                  mount: str | Mount = "hood", renderer: str | Renderer = "auto", near: float = 0.1, far: float = 300.0,
                  every: int = 1, draw_distance: float | None = None, style: WorldStyle | dict | None = None,
-                 max_worlds: int = 1) -> None:
+                 max_worlds: int = 1, hfov_deg: float | None = None, pitch_deg: float | None = None) -> None:
         self.client = int(client_id)
         self.sim = sim
         if int(max_worlds) < 1:
@@ -583,7 +599,7 @@ class CarCameras:
         fleet = getattr(sim, "fleet", None)
         self.camera = Camera(self.client, width, height, fov_deg=fov_deg, mount=mount, renderer=renderer, near=near,
                              far=far, every=every, draw_distance=draw_distance,
-                             vehicle=getattr(fleet, "params", None))
+                             vehicle=getattr(fleet, "params", None), hfov_deg=hfov_deg, pitch_deg=pitch_deg)
         self.style = style if isinstance(style, WorldStyle) or style is None else WorldStyle(**dict(style))
         self._worlds: dict[int, World] = {}
         self._surface_of: dict[int, str | None] = {}  # id(track variant) -> surface override
@@ -714,7 +730,7 @@ class _Painter:
         self.skyline_max = float(self.skyline_sin.max())
         self.inv_norm = 1.0 / np.sqrt((cam._rays ** 2).sum(0))  # rotation keeps ray lengths
         # a pixel's lateral ground footprint [m] is t * pix_angle; beyond 2 fine cells use the coarse level
-        self.pix_angle = math.radians(cam.fov_deg) / cam.height
+        self.pix_angle = max(math.radians(cam.fov_deg) / cam.height, math.radians(cam.hfov_deg) / cam.width)  # the wider side
         # chequer tile size in pixels along the ray ~ CHEQUER_M * eye_z / (t^2 * pix_angle)
         p0, p1 = self.FADE_PX
         self._row_stride = nb * self.N_FADE
