@@ -108,8 +108,10 @@ def test_painted_ground_depth_is_exact(oval_scene):
     assert np.allclose(depth[0, rows, 42], expected, rtol=1e-4)
 
 
-def test_painted_ground_lines_up_with_rendered_meshes():
-    """The same road drawn as meshes by the renderer and painted from the map: depths agree."""
+@pytest.mark.parametrize("geometry", [{}, {"fov_deg": 30.0, "hfov_deg": 81.0, "pitch_deg": 2.0}], ids=["square", "far-seeing"])
+def test_painted_ground_lines_up_with_rendered_meshes(geometry):
+    """The same road drawn as meshes by the renderer and painted from the map: depths agree (also with non-square
+    pixels and another tilt: the renderer's projection and the painter's rays are the same camera)."""
     track = tracks.load("hairpins")
     pos, yaw = _pose(track, 150.0, 2.0)
     depths = []
@@ -118,7 +120,7 @@ def test_painted_ground_lines_up_with_rendered_meshes():
         try:
             style = WorldStyle(road_meshes=meshes, post_spacing_m=0, tree_spacing_m=0, gantry=False)
             world = build_world(cid, track, style=style)
-            cam = Camera(cid, 84, 84, worlds=[world], renderer="tiny", background=not meshes)
+            cam = Camera(cid, 84, 84, worlds=[world], renderer="tiny", background=not meshes, **geometry)
             depths.append(cam.render(pos, yaw + 0.1)[1])
         finally:
             p.disconnect(cid)
@@ -282,6 +284,40 @@ def test_egl_path_renders_in_a_subprocess():
     _, name, textured, dmin, dmax = line.split()
     assert name == "egl" and textured == "1"
     assert 0.1 <= float(dmin) < 5.0 and float(dmax) == pytest.approx(300.0)
+
+
+def test_a_horizontal_field_spreads_the_rows_over_less_angle(oval_scene):
+    """hfov_deg: a box 30 deg left of the axis lands in the column the horizontal field predicts; with the vertical field
+    halved (60 -> 30 deg) at the same horizontal field, the ground 20 m ahead sits ~2x as many rows below the horizon.
+    pitch_deg replaces the mount's tilt. Out-of-range fields or tilts fail with one line."""
+    cid, track, world = oval_scene
+    cam = Camera(cid, 96, 64, fov_deg=30.0, hfov_deg=81.0, pitch_deg=0.0, worlds=[world], renderer="tiny")
+    assert cam.hfov_deg == pytest.approx(81.0) and cam.mount.pitch_deg == 0.0
+    pos, yaw = _pose(track, 120.0)
+    eye, rc = cam.camera_pose(pos, yaw)
+    ang = math.radians(30.0)
+    center = eye + 15.0 * (rc[:, 0] * math.cos(ang) + rc[:, 1] * math.sin(ang))  # 15 m away, 30 deg to the left, eye height
+    vs = p.createVisualShape(p.GEOM_BOX, halfExtents=[0.3] * 3, rgbaColor=[0.1, 0.2, 0.9, 1], physicsClientId=cid)
+    box = p.createMultiBody(0, -1, vs, basePosition=center.tolist(), physicsClientId=cid)
+    try:
+        rgb, _ = cam.render(pos, yaw)
+    finally:
+        p.removeBody(box, physicsClientId=cid)
+    blue = (rgb[2] > 150) & (rgb[0] < 100)
+    col = 0.5 * 96 * (1.0 - math.tan(ang) / math.tan(math.radians(40.5)))
+    assert blue.any() and abs(np.nonzero(blue)[1].mean() - col) < 1.5
+    # the ground 20 m ahead: its row below the horizon (pitch 0: the middle row) with 60 and 30 deg down, 81 across
+    dip = math.tan(math.atan(eye[2] / 20.0))
+    for vfov in (60.0, 30.0):
+        c = Camera(cid, 96, 64, fov_deg=vfov, hfov_deg=81.0, pitch_deg=0.0, worlds=[world], renderer="tiny")
+        depth = c.render(pos, yaw)[1][0, :, 48]
+        measured = int(np.argmax(depth < 20.0)) - 32  # first row nearer than 20 m, counted from the horizon
+        assert abs(measured - 32 * dip / math.tan(math.radians(vfov / 2.0))) <= 1.0, (vfov, measured)
+    assert Camera(cid, 96, 64, fov_deg=60.0, renderer="tiny").hfov_deg == pytest.approx(81.8, abs=0.1)  # square pixels
+    with pytest.raises(ValueError, match=r"hfov_deg must lie in \[1, 170\] or be null"):
+        Camera(cid, 96, 64, hfov_deg=180.0, renderer="tiny")
+    with pytest.raises(ValueError, match=r"pitch_deg must lie in \[-30, 90\]"):
+        Camera(cid, 96, 64, pitch_deg=-45.0, renderer="tiny")
 
 
 def test_bad_names_raise_listing_the_choices(client):
