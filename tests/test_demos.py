@@ -240,7 +240,7 @@ def test_sensor_teacher_steers_smoothly_through_esses_at_10_hz(surface):
 def test_pedal_expectile_leans_the_fit_towards_braking():
     """algo.bc_pedal_expectile=tau: where one observation carries both labels (brake -1 and throttle +1, half each),
     squared error fits the pedal to their mean 0 and the expectile fit to 2 tau - 1 (the tau-expectile of +-1);
-    steering stays the squared-error fit. Out-of-range tau, or tau with an RL algo, fails in one line."""
+    steering stays the squared-error fit. Out-of-range tau, tau with an RL algo or with separate pedals fails in one line."""
     from types import SimpleNamespace
 
     from tensordict import TensorDict
@@ -272,4 +272,6 @@ def test_pedal_expectile_leans_the_fit_towards_braking():
         validate(cfg_for("algo=bc", "algo.bc_pedal_expectile=1.0"))
     with pytest.raises(ValueError, match="algo.bc_pedal_expectile=0.2: the pedal expectile shapes the imitation fit of algo=bc / dagger only"):
         validate(cfg_for("algo=td3", "algo.bc_pedal_expectile=0.2"))
+    with pytest.raises(ValueError, match="weighs action 1 as a pedal .*allowed: 0.5, or env.action_mode=combined"):
+        validate(cfg_for("algo=bc", "algo.bc_pedal_expectile=0.2", "+env.action_mode=separate"))
     validate(cfg_for("algo=dagger", "algo.bc_pedal_expectile=0.2"))

@@ -343,7 +343,9 @@ def _against(ref: Any, val: Any, path: str, out: list[str], skip: Sequence[str] 
                         (hi is not None and (x > hi or (kind == "both-open" and x == hi))):
                     lo_s = "-inf" if lo is None else f"{lo:g}"
                     hi_s = "inf" if hi is None else f"{hi:g}"
-                    out.append(f"{path}: {x!r} is out of range; allowed: {'[(('[kind in ('open', 'both-open')]}{lo_s}, {hi_s}{'])'[kind == 'both-open']}")
+                    left = "(" if kind in ("open", "both-open") else "["
+                    right = ")" if kind == "both-open" else "]"
+                    out.append(f"{path}: {x!r} is out of range; allowed: {left}{lo_s}, {hi_s}{right}")
                     return
     elif isinstance(ref, str):
         ok = isinstance(val, str) or _is_num(val)

@@ -335,6 +335,7 @@ class Camera:
         # rows go to the distance, where the road narrows into few of them, while both road edges stay in view)
         aspect = self.width / self.height if hfov_deg is None else \
             math.tan(math.radians(hfov_deg) / 2.0) / math.tan(math.radians(self.fov_deg) / 2.0)
+        self.square_pixels = hfov_deg is None
         self.hfov_deg = math.degrees(2.0 * math.atan(math.tan(math.radians(self.fov_deg) / 2.0) * aspect))
         self._proj = p.computeProjectionMatrixFOV(self.fov_deg, aspect, self.near, self.far)
         tan_v = math.tan(math.radians(self.fov_deg) / 2.0)
@@ -730,7 +731,9 @@ class _Painter:
         self.skyline_max = float(self.skyline_sin.max())
         self.inv_norm = 1.0 / np.sqrt((cam._rays ** 2).sum(0))  # rotation keeps ray lengths
         # a pixel's lateral ground footprint [m] is t * pix_angle; beyond 2 fine cells use the coarse level
-        self.pix_angle = max(math.radians(cam.fov_deg) / cam.height, math.radians(cam.hfov_deg) / cam.width)  # the wider side
+        self.pix_angle = math.radians(cam.fov_deg) / cam.height
+        if not cam.square_pixels:  # a pixel spans more degrees across than down: the wider side sets the footprint
+            self.pix_angle = max(self.pix_angle, math.radians(cam.hfov_deg) / cam.width)
         # chequer tile size in pixels along the ray ~ CHEQUER_M * eye_z / (t^2 * pix_angle)
         p0, p1 = self.FADE_PX
         self._row_stride = nb * self.N_FADE
