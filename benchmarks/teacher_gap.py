@@ -2,13 +2,18 @@
 state the student reaches (the DAgger view), and print the per-step gap.
 
     python benchmarks/teacher_gap.py CKPT --track oval --surface asphalt [--teacher sensor_sight] [--steps 1500]
-        [--frames out.png]
+        [--frames out.png] [--driver student|teacher]
 
 Prints how the episode ended, the mean |steer| and |pedal| gaps, the fraction of steps each brakes (pedal < 0),
 and the last 40 steps (distance from start [m], speedX [km/h], trackPos, angle [rad], the student's and the
 teacher's steer and pedal). ``--frames`` writes every 10th camera frame of the last 70 steps, labelled with the
 speed and the teacher's pedal, to a PNG (camera students). This is how the sight-200 m teacher's camera student was
 found never to brake on asphalt (torcsrl/assets/reference_camera.md).
+
+``--driver teacher`` lets the teacher drive and scores the student on the teacher's own states (what behaviour cloning
+fitted): it then prints the student's and the teacher's pedal around each braking onset of the teacher. A student
+that brakes as hard as its teacher there but not on its own states suffers covariate shift (more DAgger); one that
+brakes less there too cannot read the bend from the image.
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=1500)
     ap.add_argument("--seed", type=int, default=123)
     ap.add_argument("--frames", default=None, help="PNG of the last frames (camera students)")
+    ap.add_argument("--driver", choices=("student", "teacher"), default="student", help="whose action is applied")
     a = ap.parse_args(argv)
     torch.set_num_threads(1)
     from omegaconf import OmegaConf
@@ -53,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
             label = td.get("action").clone()
             with torch.no_grad():  # the demo env already applies the run's observation pipeline (scaling included):
                 act = pol.actor(*(td.get(k) for k in pol.obs_keys)).reshape(label.shape)  # the actor, not pol(td)
-            td.set("action", act)
+            td.set("action", act if a.driver == "student" else label)
             st = td.get("state_clean")
             rows.append((float(td.get(("info", "distFromStart"))), float(st[2]), float(st[1]), float(st[0]), *act.tolist(), *label.tolist()))
             if "pixels" in td.keys():
@@ -69,12 +75,24 @@ def main(argv: list[str] | None = None) -> int:
         env.close()
     r = np.asarray(rows)
     gap = np.abs(r[:, 4:6] - r[:, 6:8])
-    print(f"{a.checkpoint} on {a.track}/{a.surface}, teacher {a.teacher}: {end}")
+    print(f"{a.checkpoint} on {a.track}/{a.surface}, teacher {a.teacher}, {a.driver} driving: {end}")
     print(f"mean |steer gap| {gap[:, 0].mean():.3f}, mean |pedal gap| {gap[:, 1].mean():.3f}; "
           f"brakes on {100 * (r[:, 5] < 0).mean():.0f} % of steps (teacher: {100 * (r[:, 7] < 0).mean():.0f} %)")
-    print("| dist m | speedX km/h | trackPos | angle rad | steer | pedal | teacher steer | teacher pedal |\n|" + "---|" * 8)
-    for row in r[-40::4]:
-        print("| " + " | ".join(f"{v:.2f}" for v in row) + " |")
+    head = "| dist m | speedX km/h | trackPos | angle rad | steer | pedal | teacher steer | teacher pedal |\n|" + "---|" * 8
+    if a.driver == "student":
+        print(head)
+        for row in r[-40::4]:
+            print("| " + " | ".join(f"{v:.2f}" for v in row) + " |")
+    else:
+        hard = r[:, 7] < -0.3
+        onsets = [i for i in range(1, len(r)) if r[i, 7] < -0.1 <= r[i - 1, 7]]
+        print(f"where the teacher brakes harder than -0.3 ({int(hard.sum())} steps): mean pedal student "
+              f"{r[hard, 5].mean() if hard.any() else float('nan'):+.3f}, teacher {r[hard, 7].mean() if hard.any() else float('nan'):+.3f}; "
+              f"{len(onsets)} braking onsets")
+        for i in onsets[:4]:
+            print(head)
+            for row in r[max(0, i - 2):i + 8]:
+                print("| " + " | ".join(f"{v:.2f}" for v in row) + " |")
     if a.frames and frames:
         import cv2
 
