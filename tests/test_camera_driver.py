@@ -199,30 +199,3 @@ def test_the_shipped_camera_driver_loads_and_sees_only_the_camera_set():
         assert float(td["telemetry"][TELEMETRY_SLOTS.index("speedX_kmh")]) > 10.0  # it drives off the grid
     finally:
         env.close()
-
-
-def test_lock_crawl_keeps_the_teacher_moving_at_full_lock():
-    """At full lock the sensor driver's speed target is a tenth below the current speed; slowly at full lock (a
-    learner turned too far in a hairpin) that decays towards a standstill. ``+crawl`` floors it at v_min."""
-    from torcsrl.demos import DemoError, known_teacher, make_teacher
-    from torcsrl.policies import PolicyError, SensorDriver, load_policy
-
-    plain, crawl = load_policy("sensor_sight:60"), load_policy("sensor_sight:60+crawl")
-    assert crawl.k.lock_crawl and not plain.k.lock_crawl and crawl.k.sight_m == 60.0 and crawl.spec.endswith("-sight60-crawl")
-    assert load_policy("sensor+crawl").k.lock_crawl and load_policy("sensor_grip+crawl").k.decel_per_mu == SensorDriver.GRIP_DECEL_PER_MU
-    st = np.zeros(len(STATE_SLOTS))
-    st[STATE_SLOTS.index("speedX_kmh")] = 5.0      # 1.4 m/s, well below v_min (4 m/s)
-    st[STATE_SLOTS.index("angle_rad")] = 1.3       # turned across the road
-    beams = np.full(19, 6.0)                        # the outer edge just ahead
-    s_plain, u_plain = plain.act(beams, st, mu=1.0)
-    s_crawl, u_crawl = crawl.act(beams, st, mu=1.0)
-    assert abs(s_plain) > plain.k.sat and s_crawl == s_plain  # full lock, the same steering
-    assert u_plain < 0.1 and u_crawl > u_plain + 0.2  # plain: the cruise offset alone (it slows on); crawl: throttle up to v_min
-    st[STATE_SLOTS.index("speedX_kmh")] = 40.0     # above v_min both slow down by a tenth: the same action
-    assert plain.act(beams, st, mu=1.0) == crawl.act(beams, st, mu=1.0)
-    assert known_teacher("sensor_sight:60+crawl") and known_teacher("sensor+crawl") and not known_teacher("sensor+fast")
-    assert make_teacher("sensor_sight:50+crawl").k.lock_crawl
-    with pytest.raises(DemoError, match="number of metres"):
-        make_teacher("sensor_sight:far+crawl")
-    with pytest.raises(PolicyError, match="number of metres"):
-        load_policy("sensor_sight:far+crawl")

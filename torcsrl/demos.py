@@ -45,18 +45,12 @@ EXTRA_KEYS = ("expert_action", "privileged")
 #: under the wheels ``info/surfaceMu``. A camera student regresses it as an auxiliary target (``algo.aux_privileged``).
 PRIVILEGED_SLOTS: tuple[str, ...] = tuple(f"track_{i}" for i in range(19)) + ("angle", "trackPos", "surfaceMu")
 #: Teachers that label demonstrations (:func:`make_teacher`).
-#: ``+crawl``: the sensor driver keeps ``v_min`` at full lock (``SensorDriver(lock_crawl=True)``).
-TEACHERS = ("expert", "sensor[+crawl]", "sensor_grip[+crawl]", "sensor_sight[:<metres>][+crawl]")
+TEACHERS = ("expert", "sensor", "sensor_grip", "sensor_sight[:<metres>]")
 
 
 def known_teacher(name: str) -> bool:
     """Whether ``name`` is one of :data:`TEACHERS` (``sensor_sight:<metres>`` with any number)."""
-    from torcsrl.policies import PolicyError, sensor_driver_kwargs
-
-    try:
-        return name == "expert" or sensor_driver_kwargs(name) is not None
-    except PolicyError:
-        return True  # a sensor_sight name with a bad sight: make_teacher says what is wrong
+    return name in TEACHERS[:-1] or name == "sensor_sight" or name.startswith("sensor_sight:")
 
 
 class DemoError(ValueError):
@@ -89,19 +83,25 @@ def make_teacher(name: str):
     """The labelling policy: ``expert`` (:class:`~torcsrl.policies.ExpertPolicy`, racing line + speed profile from the
     track map), ``sensor`` (:class:`~torcsrl.policies.SensorDriver`, a function of the observation alone) or
     ``sensor_grip`` (the same driver told the friction under the car, ``("info", "surfaceMu")``: it brakes for
-    the surface it is on — privileged knowledge a camera student can see and a rangefinder student cannot),
-    ``sensor_sight[:<metres>]`` (that driver planning its speed on at most the camera's sight of road), each with an
-    optional ``+crawl`` (it keeps ``v_min`` at full lock); reading the clean readings kept under ``*_clean``."""
-    from torcsrl.policies import ExpertPolicy, PolicyError, SensorDriver, sensor_driver_kwargs
+    the surface it is on — privileged knowledge a camera student can see and a rangefinder student cannot), reading
+    the clean readings kept under ``*_clean``."""
+    from torcsrl.policies import ExpertPolicy, SensorDriver
 
     if name == "expert":
         return ExpertPolicy(state_key="state_clean")
-    try:
-        kw = sensor_driver_kwargs(name)
-    except PolicyError as err:
-        raise DemoError(f"demos.teacher={err}") from None
-    if kw is not None:
-        return SensorDriver(**kw, rangefinder_key="rangefinder_clean", state_key="state_clean")
+    if name == "sensor":
+        return SensorDriver(rangefinder_key="rangefinder_clean", state_key="state_clean")
+    if name == "sensor_grip":
+        return SensorDriver(decel_per_mu=SensorDriver.GRIP_DECEL_PER_MU, rangefinder_key="rangefinder_clean", state_key="state_clean")
+    if name == "sensor_sight" or name.startswith("sensor_sight:"):
+        from torcsrl.policies import PolicyError, _sight
+
+        try:
+            sight = _sight(name)
+        except PolicyError as err:
+            raise DemoError(f"demos.teacher={err}") from None
+        return SensorDriver(decel_per_mu=SensorDriver.GRIP_DECEL_PER_MU, sight_m=sight, rangefinder_key="rangefinder_clean",
+                            state_key="state_clean")
     raise DemoError(f"demos.teacher={name!r} is not known; allowed: {', '.join(TEACHERS)}")
 
 

@@ -84,7 +84,7 @@ REFERENCE_RL_POLICY = Path(__file__).resolve().parent / "assets" / "reference_td
 #: The shipped camera-only driver, ``reference_camera`` (``reference_camera.md``: command, selection, figures).
 REFERENCE_CAMERA_POLICY = Path(__file__).resolve().parent / "assets" / "reference_camera.pt"
 #: Names of the built-in policies (anything else is a checkpoint path).
-BUILTIN_POLICIES = ("expert", "heuristic", "sensor[+crawl]", "sensor_grip[+crawl]", "sensor_sight[:<metres>][+crawl]", "random", "reference", "reference-td3", "reference_camera")
+BUILTIN_POLICIES = ("expert", "heuristic", "sensor", "sensor_grip", "sensor_sight[:<metres>]", "random", "reference", "reference-td3", "reference_camera")
 
 
 class PolicyError(ValueError):
@@ -477,10 +477,7 @@ class SensorDriver(Policy):
       or two: 40-70 flips/km). Only the free-space term needs it (``v_gain_free`` 5 m/s).
     * **Speed target** [m/s]: what can still stop within the free distance ``d`` straight ahead (the
       longest of the three central beams): ``sqrt(2 decel (d - d0))``, clipped to [``v_min``, ``v_max``];
-      at (near) full lock (|steer| > ``sat``) a tenth below the current speed — with ``lock_crawl``, never below
-      ``v_min``: without it a car that reaches full lock slowly (a learner turned too far in a hairpin) is told to
-      slow on towards a standstill, and stopped across the road a camera student cannot tell which way it goes
-      (seen on hairpins, 2026-11-26: the student of a 60 m teacher stopped at the apex, then drove off the wrong way).
+      at (near) full lock (|steer| > ``sat``) a tenth below the current speed.
     * **Pedal**: proportional on the speed error (``k_v``) plus a 0.1 cruise offset that fades in over the
       last ``pedal_ramp_ms`` [m/s] below the target (a step there makes the pedal chatter); traction
       control on the driven (rear) wheels (throttle faded out as their slip exceeds ``slip_max``) and a
@@ -516,8 +513,8 @@ class SensorDriver(Policy):
                  k_pos: float = 0.15, k_free: float = 0.8, p: float = 6.0, k_beta: float = -1.0, slip_max: float = 0.05,
                  tc_width: float = 3.0, u_slide: float = 0.3, k_slide: float = 5.0, k_v: float = 0.1, sat: float = 0.9,
                  v_gain_free: float = 5.0, v_gain_axis: float = math.inf, v_gain_pos: float = 15.0,
-                 pedal_ramp_ms: float = 1.0, decel_per_mu: float | None = None, sight_m: float | None = None, lock_crawl: bool = False,
-                 vehicle: str = "default", rangefinder_key: str = "rangefinder", state_key: str = "state") -> None:
+                 pedal_ramp_ms: float = 1.0, decel_per_mu: float | None = None, sight_m: float | None = None, vehicle: str = "default",
+                 rangefinder_key: str = "rangefinder", state_key: str = "state") -> None:
         from torcsrl.envs.sensors import RANGEFINDER_ANGLES_DEG
         from torcsrl.envs.vehicle import VehicleParams
 
@@ -530,7 +527,7 @@ class SensorDriver(Policy):
                                  k_beta=k_beta, slip_max=slip_max, tc_width=tc_width, u_slide=u_slide, k_slide=k_slide, k_v=k_v, sat=sat,
                                  v_gain=(float(v_gain_free), float(v_gain_axis), float(v_gain_pos)), pedal_ramp_ms=float(pedal_ramp_ms),
                                  decel_per_mu=None if decel_per_mu is None else float(decel_per_mu),
-                                 sight_m=math.inf if sight_m is None else float(sight_m), lock_crawl=bool(lock_crawl))
+                                 sight_m=math.inf if sight_m is None else float(sight_m))
         if decel_per_mu is not None:
             if not math.isfinite(float(decel_per_mu)) or float(decel_per_mu) <= 0.0:
                 raise ValueError(f"SensorDriver decel_per_mu must be a finite braking rate > 0 [m/s^2 per unit mu], got {decel_per_mu}")
@@ -539,8 +536,6 @@ class SensorDriver(Policy):
             if not math.isfinite(float(sight_m)) or float(sight_m) <= d0:
                 raise ValueError(f"SensorDriver sight_m must be a finite distance > d0 = {d0} m, got {sight_m}")
             self.spec += f"-sight{float(sight_m):g}"
-        if lock_crawl:
-            self.spec += "-crawl"
         self.max_steer, self.wheel_r = float(prm.max_steer), float(prm.wheel_radius)
         self.keys = (rangefinder_key, state_key)
         self.ang = np.radians(np.asarray(RANGEFINDER_ANGLES_DEG, dtype=float))
@@ -570,7 +565,7 @@ class SensorDriver(Policy):
             v_t = min(k.v_max, max(k.v_min, math.sqrt(2.0 * decel * max(d - k.d0, 0.0))))
         steer = max(-1.0, min(1.0, steer_rad / self.max_steer))
         if abs(steer) > k.sat:
-            v_t = min(v_t, max(0.9 * v, k.v_min) if k.lock_crawl else 0.9 * v)
+            v_t = min(v_t, 0.9 * v)
         err = v_t - v
         if k.pedal_ramp_ms > 0.0:
             cruise = 0.1 * min(1.0, max(0.0, 1.0 + err / k.pedal_ramp_ms))
@@ -626,22 +621,6 @@ class RandomPolicy(Policy):
 
 
 # --------------------------------------------------------------------------------------------
-def sensor_driver_kwargs(name: str) -> dict | None:
-    """The :class:`SensorDriver` keyword arguments of a sensor-driver name — ``sensor``, ``sensor_grip`` or
-    ``sensor_sight[:<metres>]``, each optionally ending in ``+crawl`` (``lock_crawl``) — or None for another name;
-    :class:`PolicyError` (one line) for a sight that is not a number."""
-    base, crawl = (name[:-len("+crawl")], True) if name.endswith("+crawl") else (name, False)
-    if base == "sensor":
-        kw: dict = {}
-    elif base == "sensor_grip":
-        kw = {"decel_per_mu": SensorDriver.GRIP_DECEL_PER_MU}
-    elif base == "sensor_sight" or base.startswith("sensor_sight:"):
-        kw = {"decel_per_mu": SensorDriver.GRIP_DECEL_PER_MU, "sight_m": _sight(base)}
-    else:
-        return None
-    return {**kw, "lock_crawl": True} if crawl else kw
-
-
 def _sight(name: str) -> float:
     """The sight distance [m] of ``sensor_sight`` (:data:`SensorDriver.CAMERA_SIGHT_M`) or ``sensor_sight:<metres>``."""
     if ":" not in name:
@@ -662,8 +641,12 @@ def load_policy(spec: str | Path | Policy) -> Policy:
         return ExpertPolicy()
     if s == "heuristic":
         return HeuristicPolicy()
-    if (kw := sensor_driver_kwargs(s)) is not None:
-        return SensorDriver(**kw)
+    if s == "sensor":
+        return SensorDriver()
+    if s == "sensor_grip":
+        return SensorDriver(decel_per_mu=SensorDriver.GRIP_DECEL_PER_MU)
+    if s == "sensor_sight" or s.startswith("sensor_sight:"):
+        return SensorDriver(decel_per_mu=SensorDriver.GRIP_DECEL_PER_MU, sight_m=_sight(s))
     if s == "random":
         return RandomPolicy()
     if s == "reference":
