@@ -64,7 +64,7 @@ from torcsrl.utils.checkpoint import (
     save_dir_atomically,
 )
 from torcsrl.utils.collector import StepCollector
-from torcsrl.utils.faults import claim_run_dir, exit_code, graceful_termination, os_error_line, writable_folder
+from torcsrl.utils.faults import claim_run_dir, cli_error, graceful_termination, writable_folder
 from torcsrl.utils.replay import ReplayBuffer
 from torcsrl.utils.logging import Progress, log_metrics, make_loggers, truncate_csv_after
 from torcsrl.utils.seeding import rng_state, seed_everything, set_rng_state
@@ -961,17 +961,14 @@ def main_entry() -> None:
         except (CheckpointError, ValueError, RuntimeError) as err:
             if isinstance(err, RuntimeError) and not isinstance(err, CheckpointError) and "cannot be imported" not in str(err):
                 raise
-            print(f"torcsrl.train: error: {err}", file=sys.stderr)
-            sys.exit(2)
+            sys.exit(cli_error("torcsrl.train", err))
         except OSError as err:
-            print(f"torcsrl.train: error: {os_error_line(err)}", file=sys.stderr)
-            sys.exit(2)
+            sys.exit(cli_error("torcsrl.train", err))
         except KeyboardInterrupt as err:
             last = latest_checkpoint(run_dir / "checkpoints") if run_dir is not None else None
             resume = (f"; last checkpoint {last}; resume: python -m torcsrl.train run_dir={run_dir} checkpoint.resume=latest"
                       if last else "; no checkpoint was written yet")
-            print(f"torcsrl.train: error: stopped by {getattr(err, 'name', 'SIGINT')}; workers stopped{resume}", file=sys.stderr)
-            sys.exit(exit_code(err))
+            sys.exit(cli_error("torcsrl.train", err, stopped=f"workers stopped{resume}"))
 
     main()
 

@@ -224,7 +224,7 @@ def run_config(cfg: Any, out: str | Path | None = None, verbose: bool = True) ->
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m torcsrl.evaluate [key=value ...] [--flag value ...] [-m]`` (see conf/evaluate.yaml)."""
-    from torcsrl.utils.faults import exit_code, graceful_termination, os_error_line
+    from torcsrl.utils.faults import cli_error, graceful_termination
     from torcsrl.utils.hydra_app import AppError, compose, flags_to_overrides, is_multirun, run_multirun
 
     argv = sys.argv[1:] if argv is None else list(argv)
@@ -240,16 +240,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         cfg = compose("evaluate", overrides)
         with graceful_termination():
             res = run_config(cfg)
-    except (EvalError, PolicyError, AppError) as err:
-        print(f"torcsrl.evaluate: error: {err}", file=sys.stderr)
-        return 2
-    except OSError as err:
-        print(f"torcsrl.evaluate: error: {os_error_line(err)}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt as err:
-        print(f"torcsrl.evaluate: error: stopped by {getattr(err, 'name', 'SIGINT')}; its worker processes were stopped "
-              "(run it again for the full evaluation)", file=sys.stderr)
-        return exit_code(err)
+    except (EvalError, PolicyError, AppError, OSError, KeyboardInterrupt) as err:
+        return cli_error("torcsrl.evaluate", err, stopped="its worker processes were stopped (run it again for the full evaluation)")
     out = Path(res["files"][0]).parent
     print((out / ("race.md" if (out / "race.md").exists() and not (out / "evaluation.md").exists() else "evaluation.md")).read_text())
     print(f"evaluation: {out}")
@@ -258,18 +250,14 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _multirun_job(cfg: Any, job_dir: Path) -> None:
     """One job of ``python -m torcsrl.evaluate -m ...``: its outputs in its own Hydra job folder."""
-    from torcsrl.utils.faults import graceful_termination, os_error_line
+    from torcsrl.utils.faults import cli_error, graceful_termination
 
     torch.set_num_threads(1)
     try:
         with graceful_termination():
             run_config(cfg, out=job_dir)
-    except (EvalError, PolicyError) as err:
-        print(f"torcsrl.evaluate: error: {err}", file=sys.stderr)
-        sys.exit(2)
-    except OSError as err:
-        print(f"torcsrl.evaluate: error: {os_error_line(err)}", file=sys.stderr)
-        sys.exit(2)
+    except (EvalError, PolicyError, OSError) as err:
+        sys.exit(cli_error("torcsrl.evaluate", err))
 
 
 if __name__ == "__main__":

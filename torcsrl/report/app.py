@@ -12,7 +12,7 @@ from torcsrl.evaluate import EvalError
 from torcsrl.policies import PolicyError
 from torcsrl.report.grid import DEFAULT_DEGRADATIONS, ReportConfig, check_counts, default_policies, expand_degradations, run_report
 from torcsrl.report.results import build_report, read_rows
-from torcsrl.utils.faults import exit_code, graceful_termination, os_error_line
+from torcsrl.utils.faults import cli_error, graceful_termination
 
 #: The flags of earlier versions, aliases of the config's keys (conf/report.yaml).
 FLAGS = {"--policy": ("policies", "many"), "--policies": ("policies", "many"), "--reference": ("reference", "one"),
@@ -89,16 +89,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         cfg = compose("report", overrides)
         with graceful_termination():
             res, out = run_config(cfg)
-    except (EvalError, PolicyError, AppError) as err:
-        print(f"torcsrl.report: error: {err}", file=sys.stderr)
-        return 2
-    except OSError as err:
-        print(f"torcsrl.report: error: {os_error_line(err)}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt as err:
-        print(f"torcsrl.report: error: stopped by {getattr(err, 'name', 'SIGINT')}; worker processes (or Ray tasks) stopped; "
-              "finished cells are kept in the cache and a re-run skips them", file=sys.stderr)
-        return exit_code(err)
+    except (EvalError, PolicyError, AppError, OSError, KeyboardInterrupt) as err:
+        return cli_error("torcsrl.report", err, stopped="worker processes (or Ray tasks) stopped; finished cells are kept in the "
+                         "cache and a re-run skips them")
     print(res["summary_line"])
     print(f"report: {out / 'REPORT.md'}  ({out / 'report.html'})")
     return 0

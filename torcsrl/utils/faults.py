@@ -2,7 +2,8 @@
 
 - :func:`writable_folder` / :class:`OutputError`: a folder that cannot be created or written (a path
   through a file, no permission, a full disk) fails before any work, in one line naming it.
-- :func:`os_error_line`: an ``OSError`` met while writing (a disk that fills up mid-run) as one line.
+- :func:`os_error_line`: an ``OSError`` met while writing (a disk that fills up mid-run) as one line;
+  :func:`cli_error`: what an entry point prints and returns for an error it expects, an ``OSError`` or a stop.
 - :func:`graceful_termination`: SIGTERM (what ``kill``, ``timeout`` and job schedulers send) ends a run
   like Ctrl-C does, so its ``finally`` blocks stop the worker processes; the entry points then print one
   line and exit with 128 + the signal number.
@@ -84,6 +85,23 @@ def graceful_termination(signals=(signal.SIGTERM, signal.SIGINT)):
     finally:
         for s, h in old.items():
             signal.signal(s, h)
+
+
+def cli_error(prog: str, err: BaseException, stopped: str = "") -> int:
+    """Print ``err`` on stderr as the one line ``<prog>: error: ...`` and return the process exit code: a stop
+    (Ctrl-C, or SIGTERM under :func:`graceful_termination`) as ``stopped by <signal>; <stopped>`` with 128 + the
+    signal number, an ``OSError`` through :func:`os_error_line`, anything else (the entry point's own one-line
+    errors) as its message, with 2."""
+    import sys
+
+    if isinstance(err, KeyboardInterrupt):
+        line = f"stopped by {getattr(err, 'name', 'SIGINT')}" + (f"; {stopped}" if stopped else "")
+    elif isinstance(err, OSError):
+        line = os_error_line(err)
+    else:
+        line = str(err)
+    print(f"{prog}: error: {line}", file=sys.stderr)
+    return exit_code(err)
 
 
 def exit_code(err: BaseException) -> int:
