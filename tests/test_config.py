@@ -28,6 +28,7 @@ from torcsrl.envs.rewards import PRESETS as REWARD_PRESETS
 from torcsrl.envs.sensors import STATE_SLOTS
 from torcsrl.transforms import degradation_names, make_stack, preset_names
 from torcsrl.transforms.registry import applies_to
+from _compose import compose_config
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
@@ -52,8 +53,7 @@ def options(group: str) -> list[str]:
 
 
 def compose_cfg(*overrides: str, hydra: bool = False):
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        return compose("train", overrides=list(overrides), return_hydra_config=hydra)
+    return compose_config(*overrides, hydra=hydra)
 
 
 def flat(d, prefix=""):

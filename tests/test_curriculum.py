@@ -5,11 +5,9 @@ from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf, open_dict
 from tensordict import TensorDict
 
@@ -21,8 +19,8 @@ from torcsrl.train import make_eval_envs, make_train_env, train
 from torcsrl.utils.checkpoint import CheckpointError, load_checkpoint
 from torcsrl.utils.logging import read_csv_metric
 from torcsrl.utils.replay import ReplayBuffer
+from _compose import compose_config
 
-CONF = str(Path(__file__).resolve().parents[1] / "conf")
 
 
 @pytest.fixture(autouse=True)
@@ -31,8 +29,7 @@ def _one_thread():
 
 
 def compose_cfg(*overrides: str):
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        return compose("train", overrides=list(overrides))
+    return compose_config(*overrides)
 
 
 def with_stages(cfg, stages: dict):

@@ -7,12 +7,11 @@ from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 
 from torcsrl.demos import DemoError, load_demos, write_demos
+from _compose import compose_config
 
 ROOT = Path(__file__).resolve().parents[1]
-CONF = str(ROOT / "conf")
 RACE = ["debug=smoke", "env.track=oval", "env.max_steps=200", "eval.max_steps=30", "threads=1"]
 
 
@@ -22,8 +21,7 @@ def _one_thread():
 
 
 def cfg_for(*overrides: str):
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        return compose("train", overrides=[*RACE, *overrides])
+    return compose_config(*RACE, *overrides)
 
 
 @pytest.fixture(scope="module")

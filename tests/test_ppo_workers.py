@@ -5,19 +5,17 @@ count the workers cannot share."""
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 
 from torcsrl import agents
 from torcsrl.config import ConfigError, validate
 from torcsrl.onpolicy import WorkerRollouts, make_rollout_collector, worker_config
 from torcsrl.train import make_networks, make_train_env, train
 from torcsrl.utils.logging import read_csv_metric
+from _compose import compose_config
 
-ROOT = Path(__file__).resolve().parents[1]
 PPO = ["env=toy", "debug=smoke", "algo=ppo", "algo.rollout_steps=20", "algo.epochs=2", "algo.batch_size=32"]
 
 
@@ -27,8 +25,7 @@ def _one_thread():
 
 
 def cfg_for(*overrides: str):
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-        return compose("train", overrides=[*PPO, *overrides])
+    return compose_config(*PPO, *overrides)
 
 
 def test_two_workers_give_one_batch_of_all_cars_and_act_with_the_learners_weights_and_statistics(tmp_path):

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import os
 import signal
 import subprocess
 import sys
@@ -17,6 +16,7 @@ from hydra import compose, initialize_config_dir
 from torcsrl.train import build_base_env, make_buffer, train
 from torcsrl.utils.checkpoint import CheckpointError, load_checkpoint
 from torcsrl.utils.logging import read_csv_metric
+from _compose import compose_config
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = str(ROOT / "conf")
@@ -28,8 +28,7 @@ def _one_thread():
 
 
 def cfg_for(*overrides: str):
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        return compose("train", overrides=["env=toy", "debug=smoke", *overrides])
+    return compose_config("env=toy", "debug=smoke", *overrides)
 
 
 @pytest.mark.parametrize("algo,logger", [("ddpg", "csv"), ("td3", "csv"), ("d4pg", "csv"), ("td3", "tensorboard"), ("td3", "wandb")])

@@ -12,17 +12,15 @@ import subprocess
 import sys
 from pathlib import Path
 
-from hydra import compose, initialize_config_dir
+from _compose import compose_config
 
 ROOT = Path(__file__).resolve().parents[2]
-CONF = str(ROOT / "conf")
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONWARNINGS": "ignore"}
 
 
 def cfg_for(*overrides: str, toy: bool = True):
     """A composed training config, shrunk by ``debug=smoke`` (on the toy env unless ``toy=False``)."""
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        return compose("train", overrides=[*(["env=toy"] if toy else []), "debug=smoke", *overrides])
+    return compose_config(*(["env=toy"] if toy else []), "debug=smoke", *overrides)
 
 
 def run_cli(module: str, *args: str, timeout: float = 300, cwd: Path | None = None) -> subprocess.CompletedProcess:
