@@ -6,22 +6,12 @@
 #   set -o pipefail; CAM="env.camera.width=160 env.camera.height=96" bash benchmarks/gpu/camera_screen.sh 2>&1 | tee $OUT/log.txt
 # CAM: the camera overrides of the recipe (passed to demos and train). NS shards of FR frames; DRY=1: a local dry run
 # (tiny sizes, device=cpu). TD, TB, TE: the stages' time limits [s] (demos, BC, screen).
-set -u
-export PYTHONUNBUFFERED=1
-OUT=${OUT:?OUT must be set}
-DRY=${DRY:-0}
 CAM=${CAM:-}
-W=/tmp/cs_work; rm -rf $W; mkdir -p $W
-T0=$(date +%s)
-el() { echo "[t=$(( $(date +%s) - T0 )) s]"; }
-sec() { echo; echo "==================== $* $(el)"; }
+source "$(dirname "$0")/_lib.sh" /tmp/cs_work
 
 sec "A. setup"
 if [ "$DRY" != 1 ]; then
-  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
-    || echo "SETUP: pip install of the wheels FAILED"
-  cp .whl/pyb312/*.so /tmp/site/ || echo "SETUP: copying the cp312 pybullet build FAILED"
-  export PYTHONPATH=/tmp/site:$PWD
+  install_wheels .whl
   NS=${NS:-14}; FR=${FR:-7200}; DEV=cuda; STEPS=${STEPS:-15000}; WK=14; LAPS=10
 else
   export PYTHONPATH=$PWD

@@ -7,22 +7,12 @@
 #   set -o pipefail; cd .devsnap && bash benchmarks/gpu/run_device.sh 2>&1 | tee $OUT/log.txt
 # Figures of 2026-11-26 (H200): torcsrl/envs/camera.py's docstring and the README's "Drivers that see".
 # DRY=1: local dry run (no install, tiny sizes; GPU parts report unavailable / skip).
-set -u
-export PYTHONUNBUFFERED=1
-OUT=${OUT:?OUT must be set}
-DRY=${DRY:-0}
-W=/tmp/dc_work; rm -rf $W; mkdir -p $W
-T0=$(date +%s)
-el() { echo "[t=$(( $(date +%s) - T0 )) s]"; }
-sec() { echo; echo "==================== $* $(el)"; }
+source "$(dirname "$0")/_lib.sh" /tmp/dc_work
 
 sec "A. setup"
 if [ "$DRY" != 1 ]; then
   for f in ../.gl/*.deb; do dpkg -x "$f" /; done; ldconfig
-  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site ../.whl/*.whl \
-    || echo "SETUP: pip install of the wheels FAILED"
-  cp ../.whl/pyb312/*.so /tmp/site/ || echo "SETUP: copying the cp312 pybullet build FAILED"
-  export PYTHONPATH=/tmp/site:$PWD
+  install_wheels ../.whl
   if [ ! -e /usr/share/glvnd/egl_vendor.d/10_nvidia.json ] && [ -e /usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json ]; then
     export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
   fi
