@@ -415,7 +415,8 @@ def _check_device(device: Any, out: list[str]) -> None:
 
 
 def _check_critic_obs_keys(c: Mapping, out: list[str]) -> None:
-    """``critic_obs_keys`` (asymmetric actor-critic): null, or sensor names, for the RL algorithms without demonstrations."""
+    """``critic_obs_keys`` (asymmetric actor-critic): null, or sensor names, for the actor-critic algorithms (demonstrations
+    then keep the critic's keys too: :func:`torcsrl.demos.write_demos`; folders without them are refused when loaded)."""
     keys = c.get("critic_obs_keys")
     if keys is None:
         return
@@ -431,10 +432,6 @@ def _check_critic_obs_keys(c: Mapping, out: list[str]) -> None:
     algo = (c.get("algo") or {}).get("name") if isinstance(c.get("algo"), Mapping) else None
     if algo in IMITATION:
         out.append(f"critic_obs_keys: algo={algo} has no critic; allowed: null, or an actor-critic algo (ddpg, td3, d4pg, sac)")
-    demos = c.get("demos") if isinstance(c.get("demos"), Mapping) else {}
-    if algo not in IMITATION and (demos.get("path") or (_is_num(demos.get("frames")) and demos.get("frames") > 0)):
-        out.append("critic_obs_keys: demonstrations hold the actor's observations only (no critic keys); allowed: demos.frames=0 "
-                   "and demos.path=null with critic_obs_keys (start the actor from a distilled student with init.actor=...)")
 
 
 def _check_algo_fit(c: Mapping, out: list[str]) -> None:

@@ -180,7 +180,9 @@ def write_demos(cfg: DictConfig, out: str | Path, frames: int | None = None, see
         raise DemoError(f"demos.frames must be >= 1 to write demonstrations, got {frames}")
     seed = int(cfg.seed) + 7777 if seed is None else int(seed)
     out = Path(out)
-    obs_keys = list(cfg.obs_keys or cfg.env.sensors)
+    from torcsrl.train import stored_keys
+
+    obs_keys = stored_keys(cfg)  # the actor's keys, and the critic's own where it sees more (asymmetric actor-critic)
     env = make_demo_env(cfg, seed)
     try:
         buffer = ReplayBuffer(frames, 1, obs_keys, extra_keys=EXTRA_KEYS)
@@ -203,9 +205,11 @@ def write_demos(cfg: DictConfig, out: str | Path, frames: int | None = None, see
     return out
 
 
-def load_demos(path: str | Path, record: dict[str, Any], batch_size: int, n_steps: int = 1, gamma: float = 0.99):
+def load_demos(path: str | Path, record: dict[str, Any], batch_size: int, n_steps: int = 1, gamma: float = 0.99,
+               keys: list[str] | None = None):
     """The demonstrations in ``path`` as a :class:`~torcsrl.utils.replay.ReplayBuffer`; :class:`DemoError`
-    (one line) when the folder is missing or its observation layout / pipeline differs from ``record``."""
+    (one line) when the folder is missing, its observation layout / pipeline differs from ``record``, or its rows
+    lack one of ``keys`` (what the run's transitions keep: an asymmetric critic's keys too)."""
     from torcsrl.utils.replay import ReplayBuffer
 
     path = Path(path)
@@ -218,6 +222,10 @@ def load_demos(path: str | Path, record: dict[str, Any], batch_size: int, n_step
     for k in ("obs_layout", "action_dim", "normalize", "scales", "degradation", "control_hz", "substeps", "vehicle", "action_mode"):
         if theirs.get(k) != record.get(k):
             raise DemoError(f"demonstrations {path} were written with {k}={theirs.get(k)!r}; this run has {k}={record.get(k)!r}")
+    missing = [k for k in (keys or []) if k not in buf_meta["obs_keys"]]
+    if missing:
+        raise DemoError(f"demonstrations {path} hold {list(buf_meta['obs_keys'])}; this run also needs {missing} (an asymmetric "
+                        "critic's keys): write them with this run's config (python -m torcsrl.demos <its overrides>, or demos.frames=N)")
     buf = ReplayBuffer(int(buf_meta["capacity"]), int(batch_size), list(buf_meta["obs_keys"]), streams=int(buf_meta["streams"]),
                        n_steps=int(n_steps), gamma=float(gamma), extra_keys=list(buf_meta.get("extra_keys", [])))
     if "expert_action" not in buf.extra_keys:

@@ -268,8 +268,9 @@ def make_demos(cfg: DictConfig, env: EnvBase, run_dir: Path) -> ReplayBuffer | N
 
     ``demos.path``: a folder written by ``python -m torcsrl.demos``, or a list of them (shards written in parallel,
     sampled as one :class:`~torcsrl.demos.DemoPool`); else ``demos.frames > 0`` writes that many DART frames of the
-    expert in this run's env into ``<run_dir>/demos`` (once: a resumed run reuses them).
-    Refused (one line) when their observation layout or pipeline differs from this run's."""
+    expert in this run's env into ``<run_dir>/demos`` (once: a resumed run reuses them), with the critic's own keys
+    where it sees more than the actor (``critic_obs_keys``: TD3+BC / RLPD on an asymmetric actor-critic).
+    Refused (one line) when their observation layout or pipeline differs from this run's, or they lack a key it stores."""
     d = cfg.get("demos")
     if d is None or (d.path in (None, "") and int(d.frames) <= 0):
         return None
@@ -277,7 +278,8 @@ def make_demos(cfg: DictConfig, env: EnvBase, run_dir: Path) -> ReplayBuffer | N
 
     if cfg.buffer.prioritized:
         raise ValueError("demos with buffer.prioritized=true are not supported (the demo rows have no priorities); use one or the other")
-    record, kw = pipeline_record(cfg, env), dict(n_steps=int(cfg.algo.n_steps), gamma=float(cfg.algo.gamma))
+    record = pipeline_record(cfg, env)
+    kw = dict(n_steps=int(cfg.algo.n_steps), gamma=float(cfg.algo.gamma), keys=stored_keys(cfg))
     if d.path is not None and not isinstance(d.path, str):  # a list of shards
         return DemoPool([load_demos(p, record, int(cfg.algo.batch_size), **kw) for p in d.path])
     path = Path(d.path) if d.path else Path(run_dir) / "demos"
