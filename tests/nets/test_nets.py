@@ -96,3 +96,12 @@ def test_mlp_forward_is_the_module_call():
     assert all(torch.equal(a, b) for a, b in zip(g1, g2))
     v = ValueNet(ObsEncoder(make_toy_env().observation_spec, ["state"]), (16,))
     assert torch.equal(v(torch.ones(2, 6)), v.net(v.encoder(torch.ones(2, 6))))
+
+
+def test_an_image_too_small_for_the_conv_stack_is_one_line():
+    env = make_toy_env(sensors=("pixels",), camera={"height": 32, "width": 48})
+    ObsEncoder(env.observation_spec, ["pixels"], cnn_channels=(8, 8), cnn_kernels=(8, 4), cnn_strides=(4, 2))  # 32x48 fits
+    with pytest.raises(ValueError) as e:  # the Nature-DQN stack needs 36 rows: 32 -> 7 -> 2 rows for a 3x3 kernel
+        ObsEncoder(env.observation_spec, ["pixels"], cnn_channels=(16, 32, 32), cnn_kernels=(8, 4, 3), cnn_strides=(4, 2, 1))
+    msg = str(e.value)
+    assert "\n" not in msg and "32x48 (HxW) image is too small" in msg and "layer 2 gets 2x4 for a 3x3 kernel" in msg

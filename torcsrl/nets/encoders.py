@@ -140,6 +140,13 @@ class ObsEncoder(nn.Module):
             strides = [2] + [1] * (n - 1) if cnn_strides is None else [int(k) for k in cnn_strides]
             if len(kernels) != n or len(strides) != n:
                 raise ValueError(f"encoder: {n} conv channels need as many kernels and strides; got kernels {kernels}, strides {strides}")
+            hi, wi = h, w
+            for i, (k, st) in enumerate(zip(kernels, strides)):
+                if hi < k or wi < k:
+                    raise ValueError(f"encoder: a {h}x{w} (HxW) image is too small for the conv stack (kernels {kernels}, strides "
+                                     f"{strides}): layer {i} gets {hi}x{wi} for a {k}x{k} kernel; allowed: a larger camera "
+                                     "(env.camera.height / width) or smaller algo.encoder.cnn_kernels / cnn_strides")
+                hi, wi = (hi - k) // st + 1, (wi - k) // st + 1
             layers, ci = [], c
             for co, k, st in zip(cnn_channels, kernels, strides):
                 layers += [nn.Conv2d(ci, co, k, stride=st), nn.ReLU()]
