@@ -71,6 +71,15 @@ def test_smoke_vector_observations(tmp_path, algo, extra):
     assert Path(r["checkpoint"]).is_file()
 
 
+def test_the_actor_loss_is_logged_under_a_policy_delay(tmp_path):
+    """TD3 updates its actor every policy_delay-th step; a log line shows the latest value of every loss key, so the
+    actor loss is there even when the update just before the line was critic-only (2 updates a batch of 10 frames,
+    20 between lines of 100 frames: the last one before each line is always the odd, critic-only one)."""
+    train(cfg_for("algo=td3", "algo.policy_delay=2", "learner.utd_ratio=0.2", f"run_dir={tmp_path}", "total_frames=400"))
+    q, actor = read_csv_metric(tmp_path, "loss/qvalue"), read_csv_metric(tmp_path, "loss/actor")
+    assert len(q) >= 3 and [f for f, _ in actor] == [f for f, _ in q] and all(math.isfinite(v) for _, v in actor)
+
+
 def test_smoke_pixels_with_drq_shift(tmp_path):
     r = train(cfg_for("algo=td3", f"run_dir={tmp_path}", "total_frames=200", "env.sensors=[rangefinder,state,pixels]",
                       "algo.encoder.augment_shift=2", "checkpoint.buffer=false"))

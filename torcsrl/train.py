@@ -667,6 +667,9 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     critic_warmup = int(cfg.learner.get("critic_warmup_updates", 0) or 0)
     n_demo = int(round(batch_size * float(cfg.demos.ratio))) if demos is not None else 0
     last: dict[str, Any] = {}
+    # the latest value of every loss key over the online updates (what a log line shows): TD3's actor loss (and its
+    # TD3+BC terms) survive the critic-only steps of its policy delay; pre-training's keys end at the first update
+    merged: dict[str, Any] = {}
     hot.n_demo, hot.bc_weight = n_demo, float(cfg.demos.bc_weight) if demos is not None else 0.0
     if demos is not None and not counters.pretrained:
         last = pretrain(agent, hot, loss, optim, target_updater, demos, int(cfg.demos.pretrain_steps), int(cfg.demos.critic_pretrain_steps),
@@ -698,10 +701,11 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
                     if on_device:
                         batch = batch.to(device, non_blocking=True)
                     if counters.updates >= critic_warmup:
-                        last = agent.update(hot, loss, optim, target_updater, batch, counters.updates)
+                        merged.update(agent.update(hot, loss, optim, target_updater, batch, counters.updates))
                     else:  # the critic learns the (initialised) actor's values first
-                        last = agent.update(hot, loss, optim, target_updater, batch, counters.updates, actor=False)
+                        merged.update(agent.update(hot, loss, optim, target_updater, batch, counters.updates, actor=False))
                         target_updater.step()
+                    last = merged
                     if prioritized:
                         buffer.update_tensordict_priority(batch)
                     counters.updates += 1
