@@ -429,7 +429,7 @@ class TrainWindow:
         return (counters.frames - self.frames) / max(time.perf_counter() - self.t, 1e-9)
 
     def log(self, loggers, progress, counters, last: dict, **extra) -> None:
-        """Log ``last`` (the latest update's losses), the counters, ``extra``, the window's rates and the mean return
+        """Log ``last`` (the latest value of each loss key), the counters, ``extra``, the window's rates and the mean return
         and laps of the episodes booked since the last line; then start a new window."""
         now = time.perf_counter()
         sps = self.steps_per_s(counters)
