@@ -3,19 +3,16 @@ student (experiment=camera_distill), and the one-line errors when a policy is fe
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 
 from torcsrl.envs import make_env
 from torcsrl.envs.sensors import STATE_SLOTS, TELEMETRY_SLOTS
 from torcsrl.envs.surfaces import SURFACES
+from _compose import compose_config
 
-ROOT = Path(__file__).resolve().parents[1]
-CONF = str(ROOT / "conf")
 torch.set_num_threads(1)
 
 
@@ -105,13 +102,11 @@ def distilled(tmp_path_factory):
     from torcsrl.train import train
 
     out = tmp_path_factory.mktemp("cam") / "run"
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        cfg = compose("train", overrides=["experiment=camera_distill", "env.camera.height=32", "env.camera.width=32",
-                                          "algo.encoder.cnn_kernels=[4,3,3]", "algo.encoder.cnn_strides=[2,2,1]", "algo.batch_size=16",
-                                          "algo.actor_hidden=[32,32]", "demos.frames=120", "algo.bc_steps=10", "demos.dagger_rounds=1",
-                                          "demos.dagger_frames=60", "eval.per_track=false", "eval.env.track=oval", "eval.max_steps=20",
-                                          "env.procedural.pool=2", "algo.aux_privileged=1.0", "logger.every_frames=5",
-                                          f"run_dir={out}"])
+    cfg = compose_config("experiment=camera_distill", "env.camera.height=32", "env.camera.width=32",
+                         "algo.encoder.cnn_kernels=[4,3,3]", "algo.encoder.cnn_strides=[2,2,1]", "algo.batch_size=16",
+                         "algo.actor_hidden=[32,32]", "demos.frames=120", "algo.bc_steps=10", "demos.dagger_rounds=1",
+                         "demos.dagger_frames=60", "eval.per_track=false", "eval.env.track=oval", "eval.max_steps=20",
+                         "env.procedural.pool=2", "algo.aux_privileged=1.0", "logger.every_frames=5", f"run_dir={out}")
     res = train(cfg)
     return cfg, res, out
 

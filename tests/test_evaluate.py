@@ -12,7 +12,6 @@ import torch
 from torcsrl.evaluate import EvalError, evaluate, main, parse_degradation, run_cell, seed_for
 from torcsrl.policies import CheckpointPolicy, load_policy
 
-ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(autouse=True)
@@ -30,15 +29,14 @@ def _strict_json(path: Path):
 def make_checkpoint(path: Path, obs_layout: dict[str, int], training_format: bool = False,
                     overrides: tuple[str, ...] = ()) -> Path:
     """A torcsrl checkpoint holding a freshly initialised TD3 actor for ``obs_layout`` ({key: size})."""
-    from hydra import compose, initialize_config_dir
+    from _compose import compose_config
     from omegaconf import OmegaConf
     from torchrl.data import Bounded, Composite, Unbounded
 
     from torcsrl import agents
     from torcsrl.utils.checkpoint import save_checkpoint
 
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-        cfg = compose("train", overrides=["debug=smoke", "env.camera=null", *overrides])
+    cfg = compose_config("debug=smoke", "env.camera=null", *overrides)
     spec = Composite({k: Unbounded((n,)) for k, n in obs_layout.items()}, shape=())
     env = type("FakeEnv", (), {"observation_spec": spec, "action_spec": Bounded(-1.0, 1.0, (2,))})()
     torch.manual_seed(0)

@@ -6,10 +6,8 @@ from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
+from _compose import compose_config
 
-ROOT = Path(__file__).resolve().parents[1]
-CONF = str(ROOT / "conf")
 
 
 @pytest.fixture(scope="module")
@@ -18,9 +16,8 @@ def run(tmp_path_factory):
 
     torch.set_num_threads(1)
     out = tmp_path_factory.mktemp("pipe") / "run"
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        cfg = compose("train", overrides=["debug=smoke", "env.track=oval", "env.max_steps=100", "eval.max_steps=20", "total_frames=150",
-                                          "checkpoint.every_frames=150", f"run_dir={out}"])
+    cfg = compose_config("debug=smoke", "env.track=oval", "env.max_steps=100", "eval.max_steps=20", "total_frames=150",
+                         "checkpoint.every_frames=150", f"run_dir={out}")
     res = train(cfg)
     return cfg, Path(res["checkpoint"])
 

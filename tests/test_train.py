@@ -11,7 +11,6 @@ from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 
 from torcsrl.train import build_base_env, make_buffer, train
 from torcsrl.utils.checkpoint import CheckpointError, load_checkpoint
@@ -19,7 +18,6 @@ from torcsrl.utils.logging import read_csv_metric
 from _compose import compose_config
 
 ROOT = Path(__file__).resolve().parents[1]
-CONF = str(ROOT / "conf")
 
 
 @pytest.fixture(autouse=True)
@@ -33,16 +31,14 @@ def cfg_for(*overrides: str):
 
 @pytest.mark.parametrize("algo,logger", [("ddpg", "csv"), ("td3", "csv"), ("d4pg", "csv"), ("td3", "tensorboard"), ("td3", "wandb")])
 def test_every_config_composes(algo, logger):
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        cfg = compose("train", overrides=[f"algo={algo}", f"logger={logger}"], return_hydra_config=True)
+    cfg = compose_config(f"algo={algo}", f"logger={logger}", hydra=True)
     assert cfg.env.name == "race" and cfg.hydra.job.chdir is False
     assert cfg.hydra.run.dir.startswith("outputs/")
     assert cfg.algo.name == algo and logger in cfg.logger.backends
 
 
 def test_default_command_is_td3_on_the_race_env_with_rangefinder_and_state():
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        cfg = compose("train")
+    cfg = compose_config()
     assert cfg.algo.name == "td3" and cfg.env.name == "race"
     assert list(cfg.env.sensors) == ["rangefinder", "state"]
     assert cfg.total_frames >= 100_000
@@ -158,10 +154,8 @@ def test_race_env_resumes_exactly(tmp_path):
     """The pybullet race env saves its whole simulation in the checkpoint (RaceCore.get_state):
     a run stopped at a checkpoint and resumed logs exactly what the uninterrupted run logs."""
     def race(*ov):
-        with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-            return compose("train", overrides=["env=race", "debug=smoke", "env.track=[hairpins,oval]", "env.num_cars=2",
-                                               "env.max_steps=60", "eval.max_steps=30", "checkpoint.every_frames=200",
-                                               "collector.frames_per_batch=20", *ov])
+        return compose_config("env=race", "debug=smoke", "env.track=[hairpins,oval]", "env.num_cars=2", "env.max_steps=60",
+                              "eval.max_steps=30", "checkpoint.every_frames=200", "collector.frames_per_batch=20", *ov)
 
     ref = train(race("total_frames=400", f"run_dir={tmp_path / 'ref'}"))
     train(race("total_frames=200", f"run_dir={tmp_path / 'cut'}"))
@@ -179,10 +173,9 @@ def test_per_track_validation_logs_every_track_and_resumes_exactly(tmp_path):
     """eval.per_track: one validation env per track of the list, each logged under eval/<track>/, the
     means and the worst track over them; their states are in the checkpoint (exact resume)."""
     def race(*ov):
-        with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-            return compose("train", overrides=["env=race", "debug=smoke", "env.track=[hairpins,oval]", "eval.per_track=true",
-                                               "env.max_steps=60", "eval.max_steps=40", "eval.every_episodes=2",
-                                               "checkpoint.every_frames=200", "collector.frames_per_batch=20", *ov])
+        return compose_config("env=race", "debug=smoke", "env.track=[hairpins,oval]", "eval.per_track=true", "env.max_steps=60",
+                              "eval.max_steps=40", "eval.every_episodes=2", "checkpoint.every_frames=200",
+                              "collector.frames_per_batch=20", *ov)
 
     ref = train(race("total_frames=400", f"run_dir={tmp_path / 'ref'}"))
     metric = lambda run, m: read_csv_metric(tmp_path / run, m)  # noqa: E731

@@ -9,7 +9,6 @@ from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 
 from torcsrl import agents
 from torcsrl.config import ConfigError, validate
@@ -17,9 +16,9 @@ from torcsrl.policies import CheckpointPolicy, export_policy
 from torcsrl.train import critic_obs_keys, make_buffer, make_eval_envs, make_networks, make_train_env, stored_keys, train
 from torcsrl.utils.checkpoint import CheckpointError, load_checkpoint
 from torcsrl.utils.logging import read_csv_metric
+from _compose import compose_config
 
 ROOT = Path(__file__).resolve().parents[1]
-CONF = str(ROOT / "conf")
 #: camera_asym shrunk: 32x32 frames (debug=smoke) need a two-layer CNN; one named track, validated on it
 SMALL = ["experiment=camera_asym", "debug=smoke", "env.track=oval", "env.procedural=null", "eval.env={}", "eval.per_track=false",
          "collector.init_random_frames=100", "learner.warmup_frames=100", "buffer.size=10000", "algo.encoder.cnn_channels=[8,8]",
@@ -33,8 +32,7 @@ def _one_thread():
 
 
 def compose_cfg(*overrides: str):
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        return compose("train", overrides=list(overrides))
+    return compose_config(*overrides)
 
 
 def test_camera_asym_composes_to_a_camera_actor_and_a_privileged_critic():

@@ -20,6 +20,7 @@ import contextlib
 import hashlib
 import os
 import signal
+import sys
 import uuid
 from pathlib import Path
 
@@ -92,8 +93,6 @@ def cli_error(prog: str, err: BaseException, stopped: str = "") -> int:
     (Ctrl-C, or SIGTERM under :func:`graceful_termination`) as ``stopped by <signal>; <stopped>`` with 128 + the
     signal number, an ``OSError`` through :func:`os_error_line`, anything else (the entry point's own one-line
     errors) as its message, with 2."""
-    import sys
-
     if isinstance(err, KeyboardInterrupt):
         line = f"stopped by {getattr(err, 'name', 'SIGINT')}" + (f"; {stopped}" if stopped else "")
     elif isinstance(err, OSError):
