@@ -194,3 +194,49 @@ def test_the_shipped_camera_driver_loads_and_sees_only_the_camera_set():
         assert float(td["telemetry"][TELEMETRY_SLOTS.index("speedX_kmh")]) > 10.0  # it drives off the grid
     finally:
         env.close()
+
+
+def test_a_frame_stacked_student_trains_on_one_frame_demonstrations_and_drives_one_frame_envs(distilled, tmp_path):
+    """frame_stack=3: the same demonstration folder (written at one frame) trains it, DAgger included; its checkpoint
+    keeps K, reads one-frame envs (check_env) and stacks them itself exactly as the training env did."""
+    from torchrl.envs.utils import step_mdp
+
+    from torcsrl.policies import CheckpointPolicy
+    from torcsrl.train import env_kwargs, make_train_env, train
+    from torcsrl.utils.checkpoint import latest_checkpoint
+
+    cfg0, _, out0 = distilled
+    over = [f"run_dir={tmp_path / 'fs'}", "frame_stack=3", f"demos.path={out0 / 'demos'}", "demos.frames=0"]
+    cfg = compose_config("experiment=camera_distill", "env.camera.height=32", "env.camera.width=32",
+                         "algo.encoder.cnn_kernels=[4,3,3]", "algo.encoder.cnn_strides=[2,2,1]", "algo.batch_size=16",
+                         "algo.actor_hidden=[32,32]", "algo.bc_steps=10", "demos.dagger_rounds=1", "demos.dagger_frames=30",
+                         "eval.per_track=false", "eval.env.track=oval", "eval.max_steps=20", "env.procedural.pool=2", *over)
+    res = train(cfg)
+    assert res["updates"] == 20 and res["frames"] == 30
+    pol = CheckpointPolicy(latest_checkpoint(tmp_path / "fs" / "checkpoints"))
+    assert pol.frame_stack == 3 and pol.obs_shapes["pixels"] == (3, 32, 32)  # what the env gives: one frame
+    assert pol.meta["obs_layout"].startswith("pixels:9x32x32")  # what the actor sees: 3 frames of 3 channels
+    cam = make_env(track="oval", sensors=("pixels", "telemetry"), camera={"height": 32, "width": 32})
+    try:
+        pol.check_env(cam)
+    finally:
+        cam.close()
+    train_env = make_train_env(cfg)
+    raw = make_env(**env_kwargs(cfg.env, seed=int(cfg.seed), device="cpu", max_steps=5))
+    try:
+        a, b = train_env.reset(), raw.reset()
+        pol.reset()
+        for t in range(8):  # across the end of the raw env's 5-step episode: both reset
+            with torch.no_grad():
+                mine, want = pol._act(*(b.get(k) for k in pol.obs_keys)), pol.actor(*(a.get(k) for k in pol.obs_keys))
+            torch.testing.assert_close(mine, want)
+            act = torch.tensor([0.0, 0.5])
+            a, b = train_env.step(a.set("action", act)), raw.step(b.set("action", act))
+            if bool(b["next", "done"]):
+                a, b = train_env.reset(), raw.reset()
+                pol.reset()
+            else:
+                a, b = step_mdp(a), step_mdp(b)
+    finally:
+        train_env.close()
+        raw.close()

@@ -149,6 +149,7 @@ def problems(cfg: DictConfig | Mapping) -> list[str]:
             out.append(f"device: {c['device']!r} with collector.num_workers={workers}: the env processes act on the CPU copy of the "
                        "actor only in-process; allowed: collector.num_workers=0 with a GPU device, or device=cpu")
     _check_critic_obs_keys(c, out)
+    _check_frame_stack(c, out)
     _check_algo_fit(c, out)
     demos = c.get("demos")
     if isinstance(demos, Mapping) and "teacher" in demos:
@@ -432,6 +433,28 @@ def _check_critic_obs_keys(c: Mapping, out: list[str]) -> None:
     algo = (c.get("algo") or {}).get("name") if isinstance(c.get("algo"), Mapping) else None
     if algo in IMITATION:
         out.append(f"critic_obs_keys: algo={algo} has no critic; allowed: null, or an actor-critic algo (ddpg, td3, d4pg, sac)")
+
+
+def _check_frame_stack(c: Mapping, out: list[str]) -> None:
+    """``frame_stack``: an integer 1..16; above 1 the actor must see an image (pixels or depth), and PPO's value network is
+    not stacked (one frame)."""
+    k = c.get("frame_stack", 1)
+    if k is None or isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= 16:
+        out.append(f"frame_stack: expected an integer from 1 to 16 (frames per stack), got {k!r}")
+        return
+    if k == 1:
+        return
+    from torcsrl.transforms import IMAGE_KEYS
+
+    env = c.get("env") if isinstance(c.get("env"), Mapping) else {}
+    keys = list(c.get("obs_keys") or env.get("sensors") or [])
+    if not any(x in IMAGE_KEYS for x in keys):
+        out.append(f"frame_stack={k} stacks image observations ({', '.join(IMAGE_KEYS)}); the actor sees {keys}: allowed: "
+                   "frame_stack=1, or sensors with pixels (sensors=camera | pixels | both)")
+    algo = (c.get("algo") or {}).get("name") if isinstance(c.get("algo"), Mapping) else None
+    if algo == "ppo":
+        out.append(f"frame_stack={k}: algo=ppo is not built for frame stacks yet; allowed: frame_stack=1 with algo=ppo, or an "
+                   "off-policy or imitation algo (ddpg, td3, d4pg, sac, bc, dagger)")
 
 
 def _check_algo_fit(c: Mapping, out: list[str]) -> None:

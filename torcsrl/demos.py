@@ -185,7 +185,9 @@ def write_demos(cfg: DictConfig, out: str | Path, frames: int | None = None, see
     obs_keys = stored_keys(cfg)  # the actor's keys, and the critic's own where it sees more (asymmetric actor-critic)
     env = make_demo_env(cfg, seed)
     try:
-        buffer = ReplayBuffer(frames, 1, obs_keys, extra_keys=EXTRA_KEYS)
+        from torcsrl.train import frame_history
+
+        buffer = ReplayBuffer(frames, 1, obs_keys, extra_keys=EXTRA_KEYS, history=frame_history(cfg))
         t0 = time.perf_counter()
         stats = label_rollouts(env, frames, buffer, sigma_max=float(d.sigma_max), seed=seed, progress=True, teacher=str(d.teacher))
         from torcsrl.train import pipeline_record
@@ -206,10 +208,12 @@ def write_demos(cfg: DictConfig, out: str | Path, frames: int | None = None, see
 
 
 def load_demos(path: str | Path, record: dict[str, Any], batch_size: int, n_steps: int = 1, gamma: float = 0.99,
-               keys: list[str] | None = None):
+               keys: list[str] | None = None, history: dict[str, int] | None = None):
     """The demonstrations in ``path`` as a :class:`~torcsrl.utils.replay.ReplayBuffer`; :class:`DemoError`
     (one line) when the folder is missing, its observation layout / pipeline differs from ``record``, or its rows
-    lack one of ``keys`` (what the run's transitions keep: an asymmetric critic's keys too)."""
+    lack one of ``keys`` (what the run's transitions keep: an asymmetric critic's keys too). ``history``: the run's
+    frame stacks (``{"pixels": K}``); the rows hold one frame each, so a folder written at any K is sampled at this one."""
+    from torcsrl.train import frame_layout
     from torcsrl.utils.replay import ReplayBuffer
 
     path = Path(path)
@@ -219,7 +223,11 @@ def load_demos(path: str | Path, record: dict[str, Any], batch_size: int, n_step
     except (OSError, ValueError):
         raise DemoError(f"{path} is not a demonstration folder (no readable {META} / meta.json; write one with python -m torcsrl.demos)") from None
     theirs = meta["record"]
-    for k in ("obs_layout", "action_dim", "normalize", "scales", "degradation", "control_hz", "substeps", "vehicle", "action_mode"):
+    mine_frames = frame_layout(record.get("obs_layout"), record.get("frame_stack") or 1)
+    their_frames = frame_layout(theirs.get("obs_layout"), theirs.get("frame_stack") or 1)
+    if their_frames != mine_frames:  # one frame of each: the stack is a way of sampling the rows
+        raise DemoError(f"demonstrations {path} were written with frames of {their_frames!r}; this run's frames are {mine_frames!r}")
+    for k in ("action_dim", "normalize", "scales", "degradation", "control_hz", "substeps", "vehicle", "action_mode"):
         if theirs.get(k) != record.get(k):
             raise DemoError(f"demonstrations {path} were written with {k}={theirs.get(k)!r}; this run has {k}={record.get(k)!r}")
     missing = [k for k in (keys or []) if k not in buf_meta["obs_keys"]]
@@ -227,7 +235,8 @@ def load_demos(path: str | Path, record: dict[str, Any], batch_size: int, n_step
         raise DemoError(f"demonstrations {path} hold {list(buf_meta['obs_keys'])}; this run also needs {missing} (an asymmetric "
                         "critic's keys): write them with this run's config (python -m torcsrl.demos <its overrides>, or demos.frames=N)")
     buf = ReplayBuffer(int(buf_meta["capacity"]), int(batch_size), list(buf_meta["obs_keys"]), streams=int(buf_meta["streams"]),
-                       n_steps=int(n_steps), gamma=float(gamma), extra_keys=list(buf_meta.get("extra_keys", [])))
+                       n_steps=int(n_steps), gamma=float(gamma), extra_keys=list(buf_meta.get("extra_keys", [])),
+                       history={k: v for k, v in (history or {}).items() if k in buf_meta["obs_keys"]})
     if "expert_action" not in buf.extra_keys:
         raise DemoError(f"demonstrations {path} hold no expert_action labels (extra keys {buf.extra_keys})")
     buf.loads(path)

@@ -32,7 +32,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     from torcsrl.nets import shift_pad
     from torcsrl.demos import EXTRA_KEYS, PRIVILEGED_SLOTS, DemoError, label_rollouts, make_demo_env, mixed_sample
     from torcsrl.objectives.common import ObsUnpacker
-    from torcsrl.train import _run_dir, expected_meta, make_demos, make_eval_envs, make_train_env, pipeline_record, validate_all
+    from torcsrl.train import _run_dir, expected_meta, frame_history, make_demos, make_eval_envs, make_train_env, pipeline_record, validate_all
     from torcsrl.utils.checkpoint import checkpoint_path, latest_checkpoint, prune, save_checkpoint
     from torcsrl.utils.logging import log_metrics, make_loggers
     from torcsrl.utils.replay import ReplayBuffer
@@ -85,7 +85,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         for rnd in range(rounds + 1):
             if rnd > 0:  # DAgger: the learner drives (the expert's noisy action with probability beta), the expert labels
                 beta = float(cfg.demos.dagger_beta) * 0.5 ** (rnd - 1)
-                agg = ReplayBuffer(int(cfg.demos.dagger_frames), batch_size, obs_keys, extra_keys=EXTRA_KEYS)
+                agg = ReplayBuffer(int(cfg.demos.dagger_frames), batch_size, obs_keys, extra_keys=EXTRA_KEYS, history=frame_history(cfg))
                 denv = make_demo_env(cfg, int(cfg.seed) + 31 * rnd)
                 try:
                     actor.eval()

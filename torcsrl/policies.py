@@ -226,11 +226,23 @@ class CheckpointPolicy(Policy):
         if sorted(obs_keys) != sorted(layout):
             raise PolicyError(f"checkpoint {path}: obs_keys {obs_keys} do not match its obs_layout {meta['obs_layout']!r}")
         self.obs_keys = tuple(obs_keys)
-        self.obs_shapes = {k: layout[k] for k in obs_keys}
+        # frame_stack > 1: the actor sees K frames of each image key stacked along channels; the policy keeps that history
+        # itself (reset every episode, :meth:`reset`), so it drives the one-frame envs of evaluate/report as trained
+        from torcsrl.transforms import IMAGE_KEYS
+
+        self.frame_stack = int(cfg.get("frame_stack", 1) or 1)
+        self._stacked = tuple(k for k in obs_keys if k in IMAGE_KEYS) if self.frame_stack > 1 else ()
+        self._history: dict[str, torch.Tensor] = {}
+        actor_shapes = {k: layout[k] for k in obs_keys}
+        for k in self._stacked:
+            c, *hw = actor_shapes[k]
+            if c % self.frame_stack:
+                raise PolicyError(f"checkpoint {path}: {k} of {actor_shapes[k]} is not a stack of frame_stack={self.frame_stack} frames")
+        self.obs_shapes = {k: (shp[0] // self.frame_stack, *shp[1:]) if k in self._stacked else shp for k, shp in actor_shapes.items()}
         self.action_dim = action_dim
         self.algo = algo
         specs = {}
-        for k, shp in self.obs_shapes.items():
+        for k, shp in actor_shapes.items():
             dtype = torch.uint8 if k == "pixels" else torch.float32
             specs[k] = Unbounded(shp, dtype=dtype)
         fake_env = SimpleNamespace(observation_spec=Composite(specs, shape=()),
@@ -295,8 +307,19 @@ class CheckpointPolicy(Policy):
 
         return TensorDictModule(self._act, in_keys=list(self.obs_keys), out_keys=["action"])
 
+    def reset(self, ctx: EpisodeContext | None = None) -> None:
+        """A new episode: a frame-stacking policy forgets its frames (the next stack repeats the first frame)."""
+        self._history = {}
+
     def _act(self, *obs: torch.Tensor) -> torch.Tensor:
         div = self.obs_divisors
+        if self._stacked:
+            from torcsrl.transforms import stack_frames
+
+            obs = list(obs)
+            for i, k in enumerate(self.obs_keys):
+                if k in self._stacked:
+                    obs[i] = self._history[k] = stack_frames(self._history.get(k), obs[i], self.frame_stack)
         return self.actor(*(x / div[k] if k in div else x for k, x in zip(self.obs_keys, obs)))
 
     @torch.no_grad()

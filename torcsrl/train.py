@@ -159,7 +159,38 @@ def observation_transforms(cfg: DictConfig, base: EnvBase, seed: int | None = No
         if keys:
             n_beams = base.observation_spec["rangefinder"].shape[-1] if "rangefinder" in keys else 19
             out.append(normalize_transform(keys, n_beams))
+    stacked = frame_history(cfg)
+    if stacked:  # last: every frame of a stack as the car saw it (degraded, scaled)
+        from torcsrl.transforms import FrameStack
+
+        out.append(FrameStack(cfg.frame_stack, [k for k in stacked if k in base.observation_spec.keys()]))
     return out
+
+
+def frame_history(cfg: DictConfig) -> dict[str, int]:
+    """``{image key: K}`` of the stored keys the actor sees stacked (``frame_stack`` > 1), else ``{}``."""
+    k = int(cfg.get("frame_stack", 1) or 1)
+    if k <= 1:
+        return {}
+    from torcsrl.transforms import IMAGE_KEYS
+
+    return {key: k for key in stored_keys(cfg) if key in IMAGE_KEYS}
+
+
+def frame_layout(layout: str | None, frames: int) -> str | None:
+    """An ``obs_layout`` (``key:CxHxW,...``) with the image keys' channels of ONE frame (``frames`` = K of a stack)."""
+    if layout is None or int(frames) <= 1:
+        return layout
+    from torcsrl.transforms import IMAGE_KEYS
+
+    parts = []
+    for part in str(layout).split(","):
+        k, _, shp = part.partition(":")
+        dims = shp.split("x")
+        if k in IMAGE_KEYS and dims and dims[0].isdigit():
+            dims[0] = str(int(dims[0]) // int(frames))
+        parts.append(f"{k}:{'x'.join(dims)}")
+    return ",".join(parts)
 
 
 def pipeline_record(cfg: DictConfig, env: EnvBase) -> dict[str, Any]:
@@ -183,7 +214,7 @@ def pipeline_record(cfg: DictConfig, env: EnvBase) -> dict[str, Any]:
     stack = {k: v for k, v in (stack or {}).items() if v is not None}
     return {"obs_layout": meta["obs_layout"], "action_dim": meta["action_dim"], "normalize": normalize, "scales": scales,
             "degradation": stack, "control_hz": cfg.env.get("control_hz"), "substeps": cfg.env.get("substeps"),
-            "vehicle": cfg.env.get("vehicle"), "action_mode": cfg.env.get("action_mode")}
+            "vehicle": cfg.env.get("vehicle"), "action_mode": cfg.env.get("action_mode"), "frame_stack": int(cfg.get("frame_stack", 1) or 1)}
 
 
 def _env_seed(base: EnvBase, default: int) -> int:
@@ -260,7 +291,8 @@ def make_buffer(cfg: DictConfig, run_dir: Path) -> ReplayBuffer:
     b = cfg.buffer
     return ReplayBuffer(int(b.size), int(cfg.algo.batch_size), stored_keys(cfg), streams=streams(cfg),
                         n_steps=int(cfg.algo.n_steps), gamma=float(cfg.algo.gamma), storage=str(b.storage),
-                        path=b.path or Path(run_dir) / "buffer", prioritized=bool(b.prioritized), alpha=float(b.alpha), beta=float(b.beta))
+                        path=b.path or Path(run_dir) / "buffer", prioritized=bool(b.prioritized), alpha=float(b.alpha), beta=float(b.beta),
+                        history=frame_history(cfg))
 
 
 def make_demos(cfg: DictConfig, env: EnvBase, run_dir: Path) -> ReplayBuffer | None:
@@ -279,7 +311,7 @@ def make_demos(cfg: DictConfig, env: EnvBase, run_dir: Path) -> ReplayBuffer | N
     if cfg.buffer.prioritized:
         raise ValueError("demos with buffer.prioritized=true are not supported (the demo rows have no priorities); use one or the other")
     record = pipeline_record(cfg, env)
-    kw = dict(n_steps=int(cfg.algo.n_steps), gamma=float(cfg.algo.gamma), keys=stored_keys(cfg))
+    kw = dict(n_steps=int(cfg.algo.n_steps), gamma=float(cfg.algo.gamma), keys=stored_keys(cfg), history=frame_history(cfg))
     if d.path is not None and not isinstance(d.path, str):  # a list of shards
         return DemoPool([load_demos(p, record, int(cfg.algo.batch_size), **kw) for p in d.path])
     path = Path(d.path) if d.path else Path(run_dir) / "demos"

@@ -18,7 +18,7 @@ A plain ``TransformedEnv`` works too; its ``set_seed`` then seeds only the base 
 the transforms with ``seed=`` or :func:`seed_degradations`.
 
 Modules: ``_base`` (contract, seeding, :class:`KeepClean`, :class:`DegradedEnv`),
-``rangefinder``, ``state``, ``camera``, ``temporal`` (latency, dropped frames/scans),
+``rangefinder``, ``state``, ``camera``, ``temporal`` (latency, dropped frames/scans), ``frame_stack`` (the actor's K frames; not a degradation),
 ``registry`` (names, held-out group, presets, stacks from config), ``synthetic`` (stand-in
 camera frame, depth and scans), ``gallery`` (``python -m torcsrl.transforms.gallery``).
 """
@@ -75,6 +75,7 @@ from .registry import (
     preset_names,
     sensor_of_key,
 )
+from .frame_stack import IMAGE_KEYS, FrameStack, stack_frames
 from .state import StateBias, StateDegradation, StateDropout, StateNoise
 from .temporal import FrameDrop, Hold, Latency, ScanDrop
 
@@ -135,6 +136,9 @@ __all__ = [
     "make_degradation",
     "make_preset",
     "make_stack",
+    "FrameStack",
+    "IMAGE_KEYS",
+    "stack_frames",
     "preset_names",
     "sensor_of_key",
 ]

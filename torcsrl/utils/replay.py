@@ -31,6 +31,15 @@ observation, so pixel transitions took two frames. Here:
   ``("next", "done"|"terminated"|"truncated")``, ``steps_to_next_obs`` for n > 1, ``index``
   and, when prioritized, ``priority_weight``).
 
+* **Frame stacks** (``history={"pixels": K}``: the actor sees K frames stacked along channels,
+  :class:`torcsrl.transforms.FrameStack`): a row keeps only the newest frame of its observation's
+  stack (the last ``C = channels / K`` channels), and a sampled transition gathers the K - 1 frames
+  before it from the same stream's rows ``streams`` apart, stopping at its episode's first row (the
+  row after a ``done``, or the oldest row still in the ring) and repeating that frame, which is the
+  stack the env gave the policy (``padding="same"``). The next observation's stack is the next row's,
+  or (at an end of episode) the row's own stack shifted by the final frame. Stored rows and dumps do
+  not depend on K: a folder written at K = 1 is sampled at any K.
+
 Storage is RAM (``torch.empty``: pages are touched only as rows are written) or memory-mapped
 files (``storage="disk"``). :meth:`ReplayBuffer.dumps`/:meth:`ReplayBuffer.loads` write/read a
 folder (``meta.json`` + memory-mapped TensorDicts); a buffer with the same layout is restored
@@ -127,11 +136,13 @@ class ReplayBuffer:
         alpha, beta: its exponents.
         priority_key: where the loss writes the per-sample priority (read by
             :meth:`update_tensordict_priority`).
+        history: frames per stack of the stacked image keys (``{"pixels": K}``); each frame is stored once
+            (see the module docstring). Keys with K = 1 are plain.
     """
 
     def __init__(self, capacity: int, batch_size: int, obs_keys: Sequence[str], *, streams: int = 1, n_steps: int = 1, gamma: float = 0.99,
                  storage: str = "ram", path: str | Path | None = None, prioritized: bool = False, alpha: float = 0.6, beta: float = 0.4,
-                 priority_key: str = "td_error", extra_keys: Sequence[str] = ()):
+                 priority_key: str = "td_error", extra_keys: Sequence[str] = (), history: dict[str, int] | None = None):
         if storage not in ("ram", "disk"):
             raise ValueError(f"unknown buffer.storage {storage!r}; known: ram, disk")
         if storage == "disk" and path is None:
@@ -143,6 +154,11 @@ class ReplayBuffer:
         self.batch_size = int(batch_size)
         self.obs_keys = list(obs_keys)
         self.extra_keys = list(extra_keys)
+        self.history = {str(k): int(v) for k, v in (history or {}).items() if int(v) > 1}
+        bad = [k for k in self.history if k not in self.obs_keys]
+        if bad or any(v < 1 for v in (history or {}).values()):
+            raise ValueError(f"replay: history {dict(history or {})} names keys {bad} it does not store or a stack below 1 frame; "
+                             f"allowed: keys of {self.obs_keys} with integers >= 1")
         self._row_keys = ("action", *self.extra_keys, "reward", *FLAGS)
         self._done = 2 + len(self.extra_keys)  # where "done" sits in a step's non-observation tensors
         self.storage_kind, self.path = storage, None if path is None else Path(path)
@@ -208,6 +224,8 @@ class ReplayBuffer:
             [data.get("action"), *(data.get(k) for k in self.extra_keys), *(nxt.get(k) for k in ("reward", *FLAGS))]
         # [streams, T, ...] views of every tensor (plain tensor ops: TensorDict reshapes cost ~0.1 ms each)
         obs, nobs, rest = ([x.reshape(n, steps, *x.shape[nb:]) for x in xs] for xs in get)
+        if self.history:  # a stacked image keeps its newest frame only (the earlier ones are earlier rows)
+            obs, nobs = ([self._newest(k, x) for k, x in zip(self.obs_keys, xs)] for xs in (obs, nobs))
         if self._rows is None:
             row = TensorDict({k: o[:, 0] for k, o in zip(self.obs_keys, obs)}, batch_size=[n])
             row.update({k: x[:, 0] for k, x in zip(self._row_keys, rest)})
@@ -215,6 +233,17 @@ class ReplayBuffer:
             self._allocate(row, TensorDict({k: o[:, 0] for k, o in zip(self.obs_keys, nobs)}, batch_size=[n]))
         for t in range(steps):
             self._write_step([o[:, t] for o in obs], [o[:, t] for o in nobs], [x[:, t] for x in rest])
+
+    def _newest(self, key: str, x: torch.Tensor) -> torch.Tensor:
+        """The newest frame ``[n, T, C, H, W]`` of a stacked observation ``[n, T, K*C, H, W]`` (``x`` itself when unstacked)."""
+        k = self.history.get(key, 1)
+        if k == 1:
+            return x
+        c = self._rows[key].shape[1] if self._rows is not None else x.shape[2] // k
+        if x.ndim != 5 or x.shape[2] != k * c:
+            raise ValueError(f"replay: {key} of shape {tuple(x.shape[2:])} is not a stack of {k} frames of {c} channels "
+                             f"[{k * c}, H, W]; allowed: the observations of frame_stack={k}")
+        return x[:, :, -c:]
 
     def _write_step(self, obs: list, nobs: list, rest: list) -> None:
         n = self.streams
@@ -271,18 +300,40 @@ class ReplayBuffer:
     def _next_obs(self, rows: torch.Tensor, done: torch.Tensor) -> list[torch.Tensor]:
         """Observations after the transitions in ``rows`` (``done``: their episode ended there)."""
         succ = (rows + self.streams) % self.rows
-        out = [o.index_select(0, succ) for o in self._obs]
+        out = [self._stacked(k, o, succ) if k in self.history else o.index_select(0, succ) for k, o in zip(self.obs_keys, self._obs)]
         if bool(done.any()):
             sel = done.nonzero().squeeze(-1)
             slots = self._rows["final"].index_select(0, rows.index_select(0, sel)).long()
-            for o, fin in zip(out, self._fin):
-                o[sel] = fin.index_select(0, slots)
+            for k, o, src, fin in zip(self.obs_keys, out, self._obs, self._fin):
+                last = fin.index_select(0, slots)
+                if k in self.history:  # the row's own stack, shifted by the final frame
+                    last = torch.cat([self._stacked(k, src, rows.index_select(0, sel))[:, last.shape[1]:], last], 1)
+                o[sel] = last
         return out
+
+    def _stacked(self, key: str, frames: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+        """``[B, K*C, H, W]``: the frames of ``rows`` and of the K - 1 steps of the same stream before each, oldest first,
+        the first frame of the episode repeated where the episode (or the ring's oldest intact row) starts later."""
+        k, n, size = self.history[key], self.streams, self.rows
+        base = max(0, self.written + n - size)  # logical number of the oldest row whose observation is intact
+        logical = base + (rows - base % size) % size
+        done = self._rows["done"].reshape(-1)
+        cur, cur_l = rows, logical
+        idx = [rows]
+        alive = torch.ones_like(rows, dtype=torch.bool)
+        for _ in range(k - 1):
+            prev, prev_l = (cur - n) % size, cur_l - n
+            alive = alive & (prev_l >= base) & ~done.index_select(0, prev)
+            cur, cur_l = torch.where(alive, prev, cur), torch.where(alive, prev_l, cur_l)
+            idx.append(cur)
+        order = torch.stack(idx[::-1], 1)  # [B, K], oldest first
+        out = frames.index_select(0, order.reshape(-1))
+        return out.reshape(rows.numel(), k * frames.shape[1], *frames.shape[2:])
 
     def transitions(self, rows: torch.Tensor) -> TensorDict:
         """The (n-step) transitions starting at ring rows ``rows`` (a 1-D long tensor)."""
         st = self._rows
-        out = {k: o.index_select(0, rows) for k, o in zip(self.obs_keys, self._obs)}
+        out = {k: self._stacked(k, o, rows) if k in self.history else o.index_select(0, rows) for k, o in zip(self.obs_keys, self._obs)}
         out["action"] = st["action"].index_select(0, rows)
         for k in self.extra_keys:
             out[k] = st[k].index_select(0, rows)
