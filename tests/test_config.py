@@ -300,6 +300,15 @@ def test_unknown_names_list_the_allowed_ones():
     assert "algo.name: unknown algorithm 'a2c'" in one_problem("algo.name=a2c")
 
 
+def test_frame_stacks_need_images_and_a_sensible_size():
+    assert "frame_stack: expected an integer from 1 to 16" in one_problem("frame_stack=0")
+    assert "frame_stack: expected an integer from 1 to 16" in one_problem("frame_stack=three")
+    msg = one_problem("frame_stack=3")  # the default sensors: rangefinder + state, no image to stack
+    assert "frame_stack=3 stacks image observations" in msg and "sensors=camera" in msg
+    assert "algo=ppo is not built for frame stacks" in one_problem("algo=ppo", "sensors=camera", "frame_stack=2")
+    assert not problems(compose_cfg("sensors=camera", "frame_stack=4"))
+
+
 def test_missing_mandatory_values_are_named():
     assert "algo.name: must be given" in one_problem("algo.name=???")
 

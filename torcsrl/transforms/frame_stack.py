@@ -25,6 +25,7 @@ from __future__ import annotations
 from typing import Any, Sequence
 
 import torch
+from torch.nn.parameter import UninitializedBuffer
 from torchrl.envs import CatFrames
 
 __all__ = ["IMAGE_KEYS", "FrameStack", "stack_frames"]
@@ -49,12 +50,14 @@ class FrameStack(CatFrames):
 
     # exact resume (torcsrl.train._stateful_transforms): the frames held for the next stack
     def get_sim_state(self) -> dict[str, Any]:
-        return {name: buf.clone() for name, buf in self.named_buffers() if name.startswith("_cat_buffers_")}
+        """The frames held per key (None before the first reset: CatFrames' buffers are uninitialised until then)."""
+        return {name: None if isinstance(buf, UninitializedBuffer) else buf.clone()
+                for name, buf in self.named_buffers() if name.startswith("_cat_buffers_")}
 
     def set_sim_state(self, state: dict[str, Any]) -> None:
         for name, value in state.items():
-            if hasattr(self, name) and isinstance(getattr(self, name), torch.Tensor) and getattr(self, name).shape == value.shape:
-                getattr(self, name).copy_(value)
+            if value is None:
+                self.register_buffer(name, UninitializedBuffer(device=torch.device("cpu"), dtype=torch.get_default_dtype()))
             else:
                 self.register_buffer(name, value.clone())
 
