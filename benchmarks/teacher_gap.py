@@ -63,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
             st = td.get("state_clean")
             rows.append((float(td.get(("info", "distFromStart"))), float(st[2]), float(st[1]), float(st[0]), *act.tolist(), *label.tolist()))
             if "pixels" in td.keys():
-                frames.append(td.get("pixels").clone())
+                frames.append(td.get("pixels")[-3:].clone())  # the newest frame (of a frame_stack student's stack)
             td = env.step(td)
             nxt = td.get("next")
             if bool(nxt.get("done").reshape(-1)[0]):
