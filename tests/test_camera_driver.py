@@ -240,3 +240,25 @@ def test_a_frame_stacked_student_trains_on_one_frame_demonstrations_and_drives_o
     finally:
         train_env.close()
         raw.close()
+
+
+def test_dagger_continues_from_a_distilled_student(distilled, tmp_path):
+    """init.actor with algo=dagger: round 0 validates the given student unchanged, round 1 drives it, relabels and refits."""
+    from torcsrl.policies import CheckpointPolicy
+    from torcsrl.train import train
+    from torcsrl.utils.checkpoint import checkpoint_path, latest_checkpoint
+
+    _, _, out0 = distilled
+    start = latest_checkpoint(out0 / "checkpoints")
+    cfg = compose_config("experiment=camera_distill", "env.camera.height=32", "env.camera.width=32",
+                         "algo.encoder.cnn_kernels=[4,3,3]", "algo.encoder.cnn_strides=[2,2,1]", "algo.batch_size=16",
+                         "algo.actor_hidden=[32,32]", "algo.bc_steps=7", "demos.dagger_rounds=1", "demos.dagger_frames=30",
+                         f"demos.path={out0 / 'demos'}", "demos.frames=0", f"init.actor={start}", "eval.per_track=false",
+                         "eval.env.track=oval", "eval.max_steps=20", "env.procedural.pool=2", f"run_dir={tmp_path / 'dg'}")
+    res = train(cfg)
+    assert res["updates"] == 7 and res["frames"] == 30  # one fit: round 1's
+    ck = tmp_path / "dg" / "checkpoints"
+    a, b = CheckpointPolicy(start).actor.state_dict(), CheckpointPolicy(checkpoint_path(ck, 0)).actor.state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)  # round 0: the start itself
+    c = CheckpointPolicy(latest_checkpoint(ck)).actor.state_dict()
+    assert any(not torch.equal(a[k], c[k]) for k in a)  # round 1 refitted it

@@ -3,7 +3,9 @@
 Reads like :func:`torcsrl.train.train`, without a critic: env (for the specs and validation), actor,
 demonstrations (:func:`torcsrl.train.make_demos`), then fit -> validate -> checkpoint; DAgger repeats
 (drive the learner with the expert mixed in, label with the expert, refit on everything) for
-``demos.dagger_rounds`` rounds, the expert's share ``beta`` halving each round. Checkpoints hold the
+``demos.dagger_rounds`` rounds, the expert's share ``beta`` halving each round. ``init.actor`` starts the actor from
+a checkpoint's (a student distilled before: same observations and scaling); with DAgger rounds, round 0 then only
+validates it and every later round refits it on everything. Checkpoints hold the
 actor in the same format as the RL agents', so ``evaluate``, ``report`` and ``policies export`` take them
 as they are.
 """
@@ -32,7 +34,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     from torcsrl.nets import shift_pad
     from torcsrl.demos import EXTRA_KEYS, PRIVILEGED_SLOTS, DemoError, label_rollouts, make_demo_env, mixed_sample
     from torcsrl.objectives.common import ObsUnpacker
-    from torcsrl.train import _run_dir, expected_meta, frame_history, make_demos, make_eval_envs, make_train_env, pipeline_record, validate_all
+    from torcsrl.train import _run_dir, expected_meta, frame_history, init_actor, make_demos, make_eval_envs, make_train_env, pipeline_record, validate_all
     from torcsrl.utils.checkpoint import checkpoint_path, latest_checkpoint, prune, save_checkpoint
     from torcsrl.utils.logging import log_metrics, make_loggers
     from torcsrl.utils.replay import ReplayBuffer
@@ -53,7 +55,10 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     loggers: list = []
     device = torch.device(str(cfg.device))  # the actor and its batches (device=cuda); envs and buffers stay on the CPU
     try:
-        actor = agent.make_actor(cfg.algo, env, obs_keys).to(device)
+        actor = agent.make_actor(cfg.algo, env, obs_keys)
+        init = cfg.get("init")
+        started = init_actor(str(init.actor), actor, cfg, env, obs_keys) if init is not None and init.get("actor") else None
+        actor = actor.to(device)
         optim = agent.make_optimizers(cfg.algo, actor)
         demos = make_demos(cfg, env, run_dir)
         if demos is None:
@@ -105,7 +110,11 @@ def train(cfg: DictConfig) -> dict[str, Any]:
                 for g in optim["actor"].param_groups:  # back to actor_lr (torch's cosine is chained: it starts from the current lr)
                     g["lr"] = g.setdefault("initial_lr", g["lr"])
                 sched = torch.optim.lr_scheduler.CosineAnnealingLR(optim["actor"], steps_per_fit)
-            for i in range(steps_per_fit):
+            fit = steps_per_fit if not (rnd == 0 and started is not None and rounds > 0) else 0  # DAgger on top of init.actor
+            if started is not None and rnd == 0:
+                print(f"[torcsrl] actor from {started}" + ("; DAgger rounds refit it (round 0 only validates it)" if fit == 0 else ""),
+                      file=sys.stderr)
+            for i in range(fit):
                 bc, smooth = bc_step(net, optim, mixed_sample(buffers, batch_size).to(device), precision, cfg.algo, aux)
                 if sched is not None:
                     with warnings.catch_warnings():  # FusedAdam.fast_step bypasses the step counter torch's check reads
@@ -116,6 +125,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
                     log_metrics(loggers, {"loss/bc": float(bc), **{k: float(v) for k, v in smooth.items()}, "time/updates_per_s": (i + 1) / (time.perf_counter() - t0),
                                           "train/actor_lr": optim["actor"].param_groups[0]["lr"],
                                           "train/frames": frames, "train/buffer_size": sum(len(b) for b in buffers)}, updates)
+            bc = float("nan") if fit == 0 else bc
             actor.eval()
             ev = validate_all(eval_envs, policy, int(cfg.eval.episodes), int(cfg.eval.max_steps))
             actor.train()
