@@ -262,3 +262,21 @@ def test_dagger_continues_from_a_distilled_student(distilled, tmp_path):
     assert all(torch.equal(a[k], b[k]) for k in a)  # round 0: the start itself
     c = CheckpointPolicy(latest_checkpoint(ck)).actor.state_dict()
     assert any(not torch.equal(a[k], c[k]) for k in a)  # round 1 refitted it
+
+
+def test_demonstrations_load_at_any_stack_of_their_frame_size_only(distilled):
+    import json
+
+    from torcsrl.demos import DemoError, load_demos
+
+    _, _, out0 = distilled
+    rec = json.loads((out0 / "demos" / "demos.json").read_text())["record"]
+    one = rec["obs_layout"]  # pixels:3x32x32,telemetry:9
+    assert one.startswith("pixels:3x32x32")
+    stacked = {**rec, "obs_layout": one.replace("pixels:3x", "pixels:12x"), "frame_stack": 4}
+    buf = load_demos(out0 / "demos", stacked, 8, history={"pixels": 4})
+    assert buf.sample(8)["pixels"].shape == (8, 12, 32, 32)
+    other = {**stacked, "obs_layout": one.replace("pixels:3x32x32", "pixels:12x48x48")}
+    with pytest.raises(DemoError, match=r"frames of 'pixels:3x32x32.*this run's frames are 'pixels:3x48x48") as err:
+        load_demos(out0 / "demos", other, 8, history={"pixels": 4})
+    assert "\n" not in str(err.value)
