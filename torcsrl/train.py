@@ -39,7 +39,7 @@ import functools
 import math
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -444,8 +444,8 @@ class TrainWindow:
     def __init__(self, counters) -> None:
         self.t_start, self.cpu_start = time.perf_counter(), time.process_time()
         self.t, self.frames, self.updates = self.t_start, counters.frames, counters.updates
-        self.rewards: list[float] = []
-        self.laps: list[float] = []
+        self.rewards: list[float] = counters.window_rewards  # the counters' own lists: they go into every checkpoint
+        self.laps: list[float] = counters.window_laps
 
     def book(self, data, counters) -> None:
         """Count the episodes that end in ``data`` (a collected batch) and keep their returns and laps."""
@@ -473,7 +473,8 @@ class TrainWindow:
             metrics["train/episode_reward"] = sum(self.rewards) / len(self.rewards)
             if self.laps:
                 metrics["train/laps"] = sum(self.laps) / len(self.laps)
-            self.rewards, self.laps = [], []
+            self.rewards.clear()
+            self.laps.clear()
         log_metrics(loggers, {k: v for k, v in metrics.items() if not k.startswith("time/")}, counters.frames)
         log_metrics(loggers, {k: v for k, v in metrics.items() if k.startswith("time/")}, counters.frames)
         progress.update(counters.frames, sps)
@@ -554,6 +555,10 @@ class Counters:
     next_ckpt: int = 0  # checkpoint when frames >= next_ckpt
     next_log: int = 0  # log when frames >= next_log
     pretrained: bool = False  # demonstration pre-training (demos.pretrain_steps, critic_pretrain_steps) done
+    # returns and laps of the episodes finished since the last log line (its mean is logged there): kept across a
+    # checkpoint, so a resumed run logs the same train/episode_reward as the uninterrupted one
+    window_rewards: list = field(default_factory=list)
+    window_laps: list = field(default_factory=list)
 
 
 def _stateful_transforms(env: EnvBase) -> list:

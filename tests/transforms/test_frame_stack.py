@@ -128,7 +128,9 @@ def test_frame_stack_env_and_the_policy_history_agree_across_a_reset():
 
 def test_a_frame_stacked_pixel_td3_run_resumes_exactly(tmp_path):
     """Two cars (their episodes end apart: partial resets of the stacks), TD3 on 2-frame stacks: stopped at a checkpoint
-    and resumed, it logs what the uninterrupted run logs (the FrameStack's held frames are in the checkpoint)."""
+    and resumed, it logs what the uninterrupted run logs (the FrameStack's held frames are in the checkpoint). The
+    checkpoint (160 frames) falls inside a log window (every 100): the episodes booked before it count in the resumed
+    run's next line too."""
     from _compose import compose_config
 
     from torcsrl.train import train
@@ -138,12 +140,12 @@ def test_a_frame_stacked_pixel_td3_run_resumes_exactly(tmp_path):
         return compose_config("env=race", "debug=smoke", "sensors=camera", "env.camera.width=32", "env.camera.height=32",
                               "algo.encoder.cnn_channels=[8,8]", "algo.encoder.cnn_kernels=[4,3]", "algo.encoder.cnn_strides=[2,2]",
                               "algo.batch_size=16", f"frame_stack={FS}", "env.track=oval", "env.num_cars=2", "env.max_steps=30", "eval.max_steps=20",
-                              "checkpoint.every_frames=200", "collector.frames_per_batch=20", "learner.warmup_frames=60",
+                              "checkpoint.every_frames=160", "collector.frames_per_batch=20", "learner.warmup_frames=60",
                               "collector.init_random_frames=40", *ov)
 
-    ref = train(run("total_frames=400", f"run_dir={tmp_path / 'ref'}"))
-    train(run("total_frames=200", f"run_dir={tmp_path / 'cut'}"))
-    res = train(run("total_frames=400", f"run_dir={tmp_path / 'cut'}", "checkpoint.resume=latest"))
+    ref = train(run("total_frames=320", f"run_dir={tmp_path / 'ref'}"))
+    train(run("total_frames=160", f"run_dir={tmp_path / 'cut'}"))
+    res = train(run("total_frames=320", f"run_dir={tmp_path / 'cut'}", "checkpoint.resume=latest"))
     assert ref["episodes"] >= 4
     for k in ("frames", "updates", "episodes", "loss/qvalue", "eval/reward"):
         assert res[k] == ref[k], k
