@@ -235,8 +235,7 @@ class CheckpointPolicy(Policy):
         self._history: dict[str, torch.Tensor] = {}
         actor_shapes = {k: layout[k] for k in obs_keys}
         for k in self._stacked:
-            c, *hw = actor_shapes[k]
-            if c % self.frame_stack:
+            if actor_shapes[k][0] % self.frame_stack:
                 raise PolicyError(f"checkpoint {path}: {k} of {actor_shapes[k]} is not a stack of frame_stack={self.frame_stack} frames")
         self.obs_shapes = {k: (shp[0] // self.frame_stack, *shp[1:]) if k in self._stacked else shp for k, shp in actor_shapes.items()}
         self.action_dim = action_dim
