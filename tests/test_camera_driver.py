@@ -221,6 +221,14 @@ def test_a_frame_stacked_student_trains_on_one_frame_demonstrations_and_drives_o
         pol.check_env(cam)
     finally:
         cam.close()
+    # the evaluation protocol drives it on one-frame envs, its history reset at every episode's start
+    from torcsrl.evaluate import run_cell
+
+    resets, reset = [], pol.reset
+    pol.reset = lambda ctx=None: (resets.append(dict(pol._history)), reset(ctx))[1]
+    rows, _ = run_cell(pol, "oval", "asphalt", episodes=2, max_steps=6)
+    assert len(rows) == 2 and len(resets) == 2 and resets[0] == {} and resets[1]["pixels"].shape == (9, 32, 32)  # episode 1 filled it
+    pol.reset = reset
     train_env = make_train_env(cfg)
     raw = make_env(**env_kwargs(cfg.env, seed=int(cfg.seed), device="cpu", max_steps=5))
     try:
