@@ -69,7 +69,8 @@ def ours(name: str, threads: int, steps: int, warmup: int, extra: list[str], car
     """(steps per wall second, steps per CPU second) of ``torcsrl.train.train`` after the warm-up (from its log; CPU
     seconds of the learner and, with workers, of its worker processes).
 
-    ``name``: an algorithm, with ``+bf16`` for its mixed-precision updates and (PPO) ``+w<N>`` for N worker processes."""
+    ``name``: an algorithm, with ``+bf16`` for its mixed-precision updates and (PPO) ``+w<N>`` for N worker processes,
+    ``+lag`` for one rollout of policy lag, ``+numpy`` / ``+python`` / ``+numba`` for the car physics' backend."""
     algo, *variants = name.split("+")
     for v in variants:
         if v == "bf16":
@@ -78,8 +79,10 @@ def ours(name: str, threads: int, steps: int, warmup: int, extra: list[str], car
             extra = [*extra, f"collector.num_workers={int(v[1:])}"]
         elif v == "lag" and algo == "ppo":
             extra = [*extra, "collector.policy_lag=1"]
+        elif v in ("numpy", "python", "numba") and algo == "ppo":  # the car physics' backend (default: auto)
+            extra = [*extra, f"env.vehicle_backend={v}"]
         else:
-            raise SystemExit(f"unknown contender {name!r}; allowed: <algo>, <algo>+bf16, ppo+w<N>[+lag][+bf16]")
+            raise SystemExit(f"unknown contender {name!r}; allowed: <algo>, <algo>+bf16, ppo+w<N>[+lag][+bf16][+numpy|+python|+numba]")
     run = tempfile.mkdtemp(prefix=f"tp_{algo}_")
     every = max(50, steps // 5)
     if algo == "ppo":  # the race env, cars in one world; frames counted over all cars

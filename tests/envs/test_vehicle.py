@@ -398,21 +398,24 @@ def run_backend(backend: str, overrides: dict, actions: np.ndarray, surfaces: np
         w.close()
 
 
-def test_backends_agree_and_are_deterministic():
-    """The numpy and the python backend integrate the same equations (to rounding)."""
+@pytest.mark.parametrize("other", ["python", "numba"])
+def test_backends_agree_and_are_deterministic(other):
+    """The numpy, numba and python backends integrate the same equations (to rounding)."""
     rng = np.random.default_rng(7)
     actions = rng.uniform(-1, 1, size=(200, 3, 3))
     surfaces = rng.integers(0, len(SURFACE_NAMES), size=(3, 4))
     options = {"traction_control": True, "abs": False, "drive": "all", "ackermann": 0.5}
     a = run_backend("numpy", {}, actions, surfaces)
-    assert np.array_equal(a, run_backend("numpy", {}, actions, surfaces)), "not deterministic"
-    assert np.abs(a - run_backend("python", {}, actions, surfaces)).max() < 1e-6
+    o = run_backend(other, {}, actions, surfaces)
+    assert np.array_equal(o, run_backend(other, {}, actions, surfaces)), "not deterministic"
+    assert np.abs(a - o).max() < 1e-6
     b = run_backend("numpy", options, actions, surfaces)
-    assert np.abs(b - run_backend("python", options, actions, surfaces)).max() < 1e-6
+    assert np.abs(b - run_backend(other, options, actions, surfaces)).max() < 1e-6
     assert np.abs(a - b).max() > 1.0  # the options do change the dynamics
 
 
-def test_cars_dealt_over_several_worlds_move_as_in_one_world():
+@pytest.mark.parametrize("backend", ["numpy", "numba"])
+def test_cars_dealt_over_several_worlds_move_as_in_one_world(backend):
     """A fleet over several pybullet clients gives the bits of the same fleet in one client: each car's body is
     integrated alone (no contacts between cars), only the collision broadphase is split."""
     n = 12
@@ -420,7 +423,7 @@ def test_cars_dealt_over_several_worlds_move_as_in_one_world():
     def run(k: int) -> np.ndarray:
         worlds = [World() for _ in range(k)]
         try:
-            f = CarFleet([w.client for w in worlds] if k > 1 else worlds[0].client, n, backend="numpy",
+            f = CarFleet([w.client for w in worlds] if k > 1 else worlds[0].client, n, backend=backend,
                          control_hz=10.0, substeps=20)
             assert f.clients == [w.client for w in worlds]
             rng = np.random.default_rng(0)
@@ -439,8 +442,9 @@ def test_cars_dealt_over_several_worlds_move_as_in_one_world():
         assert run(k).tobytes() == one.tobytes(), k
 
 
+@pytest.mark.parametrize("backend", ["numpy", "numba"])
 @pytest.mark.parametrize("worlds", [1, 3])
-def test_parked_cars_leave_the_physics_and_come_back_as_if_reset_in_place(worlds):
+def test_parked_cars_leave_the_physics_and_come_back_as_if_reset_in_place(worlds, backend):
     """park() takes cars out of the physics: the others move as they would have, a parked car's state stays
     frozen, and reset() brings it back as a new body with the bits of a body reset in place."""
     n = 9
@@ -448,7 +452,7 @@ def test_parked_cars_leave_the_physics_and_come_back_as_if_reset_in_place(worlds
     def run(park: bool) -> tuple[np.ndarray, CarFleet]:
         ws = [World() for _ in range(worlds)]
         try:
-            f = CarFleet([w.client for w in ws] if worlds > 1 else ws[0].client, n, backend="numpy",
+            f = CarFleet([w.client for w in ws] if worlds > 1 else ws[0].client, n, backend=backend,
                          control_hz=10.0, substeps=20)
             rng = np.random.default_rng(0)
             f.reset(np.arange(n), rng.normal(0.0, 3.0, (n, 2)), rng.normal(0.0, 0.1, n), 20.0)
@@ -478,9 +482,18 @@ def test_parked_cars_leave_the_physics_and_come_back_as_if_reset_in_place(worlds
         f.get_state()
 
 
-def test_park_needs_the_numpy_backend(world):
+def test_numba_backend_without_numba_fails_in_one_line(world, monkeypatch):
+    from torcsrl.envs import vehicle
+
+    monkeypatch.setattr(vehicle, "_JIT", None)  # as on a machine without numba
+    with pytest.raises(ValueError, match="backend numba needs the numba package"):
+        world.fleet(2, backend="numba")
+    assert world.fleet(2).backend == "python" and world.fleet(6).backend == "numpy"  # auto falls back
+
+
+def test_park_needs_the_numpy_or_numba_backend(world):
     f = world.fleet(2, backend="python")
-    with pytest.raises(ValueError, match="numpy backend"):
+    with pytest.raises(ValueError, match="numpy or numba backend"):
         f.park([0])
 
 
@@ -492,7 +505,7 @@ def test_several_worlds_refuse_what_needs_one():
             with pytest.raises(ValueError):
                 CarFleet(ids, n, **kw)
         f = CarFleet(ids, 3)
-        assert f.backend == "numpy" and f._cids == [ids[0], ids[0], ids[1]]
+        assert f.backend == "numba" and f._cids == [ids[0], ids[0], ids[1]]
         with pytest.raises(ValueError, match="cannot collide"):
             f.set_collide(True)
         with pytest.raises(ValueError, match="one world"):
@@ -502,7 +515,7 @@ def test_several_worlds_refuse_what_needs_one():
             w.close()
 
 
-@pytest.mark.parametrize("backend", ["numpy", "python"])
+@pytest.mark.parametrize("backend", ["numpy", "numba", "python"])
 def test_closed_form_ground_matches_pybullet_ray_test(backend):
     """ground="plane" (closed-form suspension rays) gives pybullet's ray-test trajectory, also for
     cars that overlap on one spot (where pybullet's ray test gets ~10x dearer)."""

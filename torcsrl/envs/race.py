@@ -32,7 +32,7 @@ from torcsrl.envs.sensors import (MS_TO_KMH, RANGEFINDER_ANGLES_DEG, RANGE_M, ST
                                   Rangefinder, check_sensors)
 from torcsrl.envs.traffic import (OPPONENT_RANGE_M, OPPONENT_RGBA, OPPONENT_SECTORS, RACE_INFO_KEYS, Traffic, TrafficSpec,
                                   opponent_sectors)
-from torcsrl.envs.vehicle import CarFleet, VehicleParams, make_ground
+from torcsrl.envs.vehicle import BACKENDS, CarFleet, VehicleParams, make_ground
 
 ACTION_MODES = ("combined", "separate")
 START_MODES = ("grid", "random")
@@ -131,6 +131,8 @@ class RaceCore:
             ``ceil(n / cars_per_world)`` worlds (:class:`~torcsrl.envs.vehicle.CarFleet`; each car moves as it
             would in one world, and a world's collision broadphase sorts through its own cars only: many cars
             on one line are cheaper). Not with traffic or a camera.
+        vehicle_backend: how :class:`~torcsrl.envs.vehicle.CarFleet` integrates the cars: ``auto`` (numba where it
+            is installed, the fastest), ``numba``, ``numpy`` or ``python`` (the same equations, to rounding).
         seed: seed of the env's random generator (tracks, surfaces, spawn).
     """
 
@@ -164,6 +166,7 @@ class RaceCore:
         procedural: Mapping[str, Any] | None = None,
         traffic: Mapping[str, Any] | None = None,
         cars_per_world: int | None = None,
+        vehicle_backend: str = "auto",
         seed: int | None = None,
     ) -> None:
         self.sensors = check_sensors(sensors)
@@ -173,6 +176,8 @@ class RaceCore:
             raise ValueError(f"unknown action_mode {action_mode!r}; allowed: {', '.join(ACTION_MODES)}")
         if start not in START_MODES:
             raise ValueError(f"unknown start {start!r}; allowed: {', '.join(START_MODES)}")
+        if vehicle_backend not in BACKENDS:
+            raise ValueError(f"unknown vehicle_backend {vehicle_backend!r}; allowed: {', '.join(BACKENDS)}")
         if int(max_steps) != max_steps or max_steps < 1:
             raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}")
         if lap_limit is not None and (int(lap_limit) != lap_limit or lap_limit < 1):
@@ -220,7 +225,7 @@ class RaceCore:
             make_ground(c)
         params = VehicleParams.load(vehicle, overrides=dict(vehicle_overrides) if vehicle_overrides else None)
         self.fleet = CarFleet([self.client, *self._more_clients] if worlds > 1 else self.client, self.n, params,
-                              control_hz=control_hz, substeps=substeps)
+                              control_hz=control_hz, substeps=substeps, backend=vehicle_backend)
         self.dt = self.fleet.dt_control
         self.traffic: Traffic | None = None
         self._group_offset = np.zeros((self.n, 2))
