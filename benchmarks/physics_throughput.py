@@ -100,7 +100,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--rounds", type=int, default=7, help="interleaved timing rounds (best is kept)")
     parser.add_argument("--seconds", type=float, default=0.4, help="length of one timing window [s]")
     parser.add_argument("--sizes", type=int, nargs="+", default=[1, 8, 32], help="fleet sizes N")
-    parser.add_argument("--backend", default="auto", choices=["auto", "numpy", "python"])
+    parser.add_argument("--backend", default="auto", choices=["auto", "numba", "numpy", "python"])
     args = parser.parse_args(argv)
 
     ref_step, ref_close = make_racecar()
