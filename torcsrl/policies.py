@@ -27,6 +27,10 @@ spec                          policy
 ``sensor_grip``               the same driver told the friction under the car (``info/surfaceMu``):
                               the privileged teacher of the camera driver (``demos.teacher=sensor_grip``)
 ``random``                    uniform random actions in [-1, 1], seeded per episode (R_random)
+``a.pt+b.pt[+...][@reduce]``  :class:`EnsemblePolicy`: the checkpoints drive as one, their actions
+                              combined by ``mean`` (default), ``median`` or ``cautious`` (mean
+                              steering, the most cautious pedal); an ensemble file written by
+                              :func:`export_ensemble` loads the same way
 ============================  =================================================================
 
 Each policy says which observation keys it reads (``obs_keys``) and which env settings it needs
@@ -36,7 +40,8 @@ layout fails with ONE line (:class:`PolicyError`). ``fingerprint`` is a hash of 
 file bytes (or of the code of a built-in driver): report caches are keyed by it.
 
 CLI: ``python -m torcsrl.policies export CKPT OUT`` writes a policy file (what the shipped
-reference driver is); ``python -m torcsrl.policies info SPEC`` prints what a spec loads.
+reference driver is); ``python -m torcsrl.policies ensemble OUT A B ... --reduce cautious`` writes
+an ensemble file; ``python -m torcsrl.policies info SPEC`` prints what a spec loads.
 """
 
 from __future__ import annotations
@@ -69,6 +74,8 @@ __all__ = [
     "RandomPolicy",
     "load_policy",
     "export_policy",
+    "EnsemblePolicy",
+    "export_ensemble",
     "file_fingerprint",
 ]
 
@@ -196,7 +203,8 @@ def _parse_layout(layout: str) -> dict[str, tuple[int, ...]]:
 class CheckpointPolicy(Policy):
     """The deterministic actor mu(s) of a torcsrl checkpoint (no exploration noise)."""
 
-    def __init__(self, path: str | Path, name: str | None = None) -> None:
+    def __init__(self, path: str | Path, name: str | None = None, payload: dict[str, Any] | None = None) -> None:
+        """``payload``: the checkpoint's contents when already read (a member of an ensemble file); else read from ``path``."""
         from omegaconf import OmegaConf
         from torchrl.data import Bounded, Composite, Unbounded
 
@@ -207,11 +215,17 @@ class CheckpointPolicy(Policy):
         self.path = path
         self.spec = str(path)
         self.name = name or path.stem
-        try:
-            ck = load_checkpoint(path)
-        except CheckpointError as err:
-            raise PolicyError(str(err)) from None
+        if payload is None:
+            try:
+                ck = load_checkpoint(path)
+            except CheckpointError as err:
+                raise PolicyError(str(err)) from None
+        else:
+            ck = payload
         meta = ck["meta"]
+        if meta.get("kind") == "ensemble":
+            raise PolicyError(f"{path} is an ensemble of {len(ck.get('members', []))} students, not one actor; load it with "
+                              "torcsrl.policies.load_policy (or pass one of its members)")
         try:
             cfg = OmegaConf.create(ck["config"])
             algo = str(meta["algo"])
@@ -295,7 +309,7 @@ class CheckpointPolicy(Policy):
                 if rec.get(k) is not None and self.env_overrides.get(k) != rec.get(k):
                     raise PolicyError(f"checkpoint {path}: recorded {k}={rec.get(k)!r}, its config gives {self.env_overrides.get(k)!r}")
         self.pipeline = rec
-        self.fingerprint = file_fingerprint(path)
+        self.fingerprint = file_fingerprint(path) if payload is None else str(meta.get("sha256", ""))
         self.config_yaml = ck["config"]
         self.meta = dict(meta)
 
@@ -325,6 +339,124 @@ class CheckpointPolicy(Policy):
     def __call__(self, td: TensorDictBase) -> TensorDictBase:
         td.set("action", self._act(*(td.get(k) for k in self.obs_keys)))
         return td
+
+
+class EnsemblePolicy(Policy):
+    """Several students of one observation layout driving as one: each member acts on the observation (its own frame
+    history and observation scaling), and ``reduce`` combines their actions:
+
+    - ``mean``: the mean action (the usual ensemble);
+    - ``median``: the per-dimension median (mid-point of the middle two for an even count);
+    - ``cautious``: the mean steering and the most cautious pedal of the members (the least throttle or most brake;
+      with ``action_mode=separate``: the least throttle and the most brake). Where the members disagree about braking
+      (the camera students differ exactly where a bend is not yet clear in the image) it brakes.
+
+    Specs: ``a.pt+b.pt[+...][@mean|@median|@cautious]`` (default mean), or an ensemble file written by
+    :func:`export_ensemble` (``python -m torcsrl.policies ensemble OUT A B ... --reduce cautious``)."""
+
+    REDUCE = ("mean", "median", "cautious")
+
+    def __init__(self, members: list[CheckpointPolicy], reduce: str = "mean", name: str | None = None,
+                 spec: str | None = None, fingerprint: str | None = None) -> None:
+        if len(members) < 2:
+            raise PolicyError(f"an ensemble needs at least 2 checkpoints; got {len(members)}")
+        if reduce not in self.REDUCE:
+            raise PolicyError(f"ensemble reduce={reduce!r} is not known; allowed: {', '.join(self.REDUCE)}")
+        first = members[0]
+
+        def setting(m: CheckpointPolicy) -> tuple:  # unset (None) camera fields are the defaults: equal to absent ones
+            env = {k: ({a: b for a, b in v.items() if b is not None} if isinstance(v, dict) else v) for k, v in m.env_overrides.items()}
+            return sorted(m.obs_keys), m.obs_shapes, m.action_dim, env
+
+        for m in members[1:]:
+            if setting(m) != setting(first):
+                raise PolicyError(f"ensemble members must read the same observations with the same env settings: {m.spec} "
+                                  f"({m._layout_hint()}, {m.env_overrides}) differs from {first.spec} ({first._layout_hint()}, {first.env_overrides})")
+        self.members, self.reduce = list(members), reduce
+        self.obs_keys, self.obs_shapes, self.action_dim = first.obs_keys, dict(first.obs_shapes), first.action_dim
+        self.env_overrides = dict(first.env_overrides)
+        self.spec = spec or "+".join(m.spec for m in members) + ("" if reduce == "mean" else f"@{reduce}")
+        self.name = name or f"ensemble{len(members)}"
+        self.fingerprint = fingerprint or hashlib.sha256("|".join([*(m.fingerprint for m in members), reduce]).encode()).hexdigest()
+
+    @classmethod
+    def from_spec(cls, spec: str) -> EnsemblePolicy:
+        """``a.pt+b.pt[+...][@reduce]``."""
+        files, _, reduce = spec.partition("@")
+        members = [_checkpoint_file(x) for x in files.split("+")]
+        for m in members:
+            if isinstance(m, EnsemblePolicy):
+                raise PolicyError(f"ensemble member {m.spec} is itself an ensemble; allowed: single checkpoints, run folders or policy files")
+        return cls(members, reduce=reduce or "mean")
+
+    def reset(self, ctx: EpisodeContext | None = None) -> None:
+        for m in self.members:
+            m.reset(ctx)
+
+    @torch.no_grad()
+    def __call__(self, td: TensorDictBase) -> TensorDictBase:
+        acts = torch.stack([m._act(*(td.get(k) for k in m.obs_keys)) for m in self.members])  # [members, ..., A]
+        if self.reduce == "mean":
+            act = acts.mean(0)
+        elif self.reduce == "median":
+            act = acts.quantile(0.5, dim=0)
+        else:  # cautious
+            act = acts.mean(0)
+            act[..., 1] = acts[..., 1].min(0).values  # combined pedal (+ throttle, - brake) or throttle: the least
+            if self.action_dim == 3:
+                act[..., 2] = acts[..., 2].max(0).values  # brake: the most
+        td.set("action", act)
+        return td
+
+    def describe(self) -> dict[str, Any]:
+        return {**super().describe(), "reduce": self.reduce, "members": [m.describe() for m in self.members]}
+
+
+def export_ensemble(checkpoints: list[str | Path], out: str | Path, reduce: str = "mean") -> Path:
+    """Write an ensemble of checkpoints' actors (each member's weights, meta and config; no optimiser, buffer or RNG
+    state) to ONE policy file that :func:`load_policy` drives as :class:`EnsemblePolicy` (how a shipped driver can be
+    an ensemble). The members are checked as the spec ``a.pt+b.pt@reduce`` checks them."""
+    from torcsrl.utils.checkpoint import save_checkpoint
+
+    ens = EnsemblePolicy.from_spec("+".join(map(str, checkpoints)) + f"@{reduce}")  # the checks: 2+, one layout, a known reduce
+    pols = ens.members
+    members = []
+    for pol in pols:
+        meta = {k: v for k, v in pol.meta.items() if k not in ("format", "version", "sha256")}
+        meta.update(kind="policy", source=Path(pol.path).name)
+        members.append({"meta": meta, "actor": pol.actor.state_dict(), "config": pol.config_yaml})
+    first = pols[0].meta
+    meta = {"kind": "ensemble", "reduce": ens.reduce, "sources": [Path(p.path).name for p in pols],
+            "algo": first.get("algo"), "obs_layout": first.get("obs_layout"), "action_dim": first.get("action_dim")}
+    return save_checkpoint(out, {"meta": meta, "members": members})
+
+
+def _checkpoint_file(s: str | Path, name: str | None = None) -> Policy:
+    """The policy of one checkpoint or policy file: :class:`CheckpointPolicy`, or :class:`EnsemblePolicy` for an
+    ensemble file (:func:`export_ensemble`)."""
+    from torcsrl.utils.checkpoint import CheckpointError, latest_checkpoint, load_checkpoint
+
+    path = Path(s)
+    if not path.exists():
+        raise PolicyError(f"policy {str(s)!r} is neither a checkpoint file that exists nor one of {', '.join(BUILTIN_POLICIES)}")
+    if path.is_dir():  # a run folder: its newest checkpoint
+        latest = latest_checkpoint(path / "checkpoints") or latest_checkpoint(path)
+        if latest is None:
+            raise PolicyError(f"policy {str(s)!r} is a folder without checkpoints (ckpt_*.pt in it or in its checkpoints/)")
+        path, name = latest, name or Path(s).name
+    try:
+        ck = load_checkpoint(path)
+    except CheckpointError as err:
+        raise PolicyError(str(err)) from None
+    if ck["meta"].get("kind") != "ensemble":
+        return CheckpointPolicy(path, name=name, payload=ck)
+    members = ck.get("members")
+    if not isinstance(members, list) or len(members) < 2:
+        raise PolicyError(f"ensemble file {path} holds no members (expected 2 or more written by export_ensemble)")
+    pols = [CheckpointPolicy(path.with_name(f"{path.stem}[{i}]"), payload={**m, "meta": {**m["meta"], "sha256": f"{ck['meta']['sha256']}:{i}"}})
+            for i, m in enumerate(members)]
+    return EnsemblePolicy(pols, reduce=str(ck["meta"].get("reduce", "mean")), name=name or path.stem, spec=str(path),
+                          fingerprint=file_fingerprint(path))
 
 
 def export_policy(checkpoint: str | Path, out: str | Path) -> Path:
@@ -674,24 +806,16 @@ def load_policy(spec: str | Path | Policy) -> Policy:
     if s == "reference":
         if not REFERENCE_POLICY.is_file():
             raise PolicyError(f"the reference driver {REFERENCE_POLICY} is not shipped yet; pass a checkpoint path, 'expert' or 'heuristic'")
-        return CheckpointPolicy(REFERENCE_POLICY, name="reference")
+        return _checkpoint_file(REFERENCE_POLICY, name="reference")
     if s == "reference-td3":
-        return CheckpointPolicy(REFERENCE_RL_POLICY, name="reference-td3")
+        return _checkpoint_file(REFERENCE_RL_POLICY, name="reference-td3")
     if s in ("reference_camera", "reference-camera"):
         if not REFERENCE_CAMERA_POLICY.is_file():
             raise PolicyError(f"the camera driver {REFERENCE_CAMERA_POLICY} is not shipped yet; pass a checkpoint path")
-        return CheckpointPolicy(REFERENCE_CAMERA_POLICY, name="reference_camera")
-    p = Path(s)
-    if not p.exists():
-        raise PolicyError(f"policy {s!r} is neither a checkpoint file that exists nor one of {', '.join(BUILTIN_POLICIES)}")
-    if p.is_dir():
-        from torcsrl.utils.checkpoint import latest_checkpoint
-
-        latest = latest_checkpoint(p / "checkpoints") or latest_checkpoint(p)
-        if latest is None:
-            raise PolicyError(f"policy {s!r} is a folder without checkpoints (ckpt_*.pt in it or in its checkpoints/)")
-        return CheckpointPolicy(latest, name=p.name)
-    return CheckpointPolicy(p)
+        return _checkpoint_file(REFERENCE_CAMERA_POLICY, name="reference_camera")
+    if "+" in s and not Path(s).exists():  # an ensemble: a.pt+b.pt[+...][@reduce]
+        return EnsemblePolicy.from_spec(s)
+    return _checkpoint_file(s)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -700,6 +824,10 @@ def main(argv: list[str] | None = None) -> int:
     e = sub.add_parser("export", help="write a policy file (actor weights + config) from a training checkpoint")
     e.add_argument("checkpoint")
     e.add_argument("out")
+    en = sub.add_parser("ensemble", help="write ONE policy file driving several checkpoints as an ensemble (EnsemblePolicy)")
+    en.add_argument("out")
+    en.add_argument("checkpoints", nargs="+")
+    en.add_argument("--reduce", default="mean", choices=EnsemblePolicy.REDUCE)
     i = sub.add_parser("info", help="print what a policy spec loads")
     i.add_argument("spec")
     args = parser.parse_args(argv)
@@ -707,6 +835,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.cmd == "export":
             out = export_policy(args.checkpoint, args.out)
             print(f"wrote {out} ({out.stat().st_size / 1024:.0f} KiB)")
+        elif args.cmd == "ensemble":
+            out = export_ensemble(args.checkpoints, args.out, args.reduce)
+            print(f"wrote {out} ({out.stat().st_size / 1024:.0f} KiB): {len(args.checkpoints)} members, reduce={args.reduce}")
         else:
             print(load_policy(args.spec).describe())
     except PolicyError as err:
