@@ -203,8 +203,10 @@ def _parse_layout(layout: str) -> dict[str, tuple[int, ...]]:
 class CheckpointPolicy(Policy):
     """The deterministic actor mu(s) of a torcsrl checkpoint (no exploration noise)."""
 
-    def __init__(self, path: str | Path, name: str | None = None, payload: dict[str, Any] | None = None) -> None:
-        """``payload``: the checkpoint's contents when already read (a member of an ensemble file); else read from ``path``."""
+    def __init__(self, path: str | Path, name: str | None = None, payload: dict[str, Any] | None = None,
+                 fingerprint: str | None = None) -> None:
+        """``payload``: the checkpoint's contents when already read from ``path`` (or a member of an ensemble file, with
+        its own ``fingerprint``); else read from ``path``. ``fingerprint`` defaults to the hash of ``path``'s bytes."""
         from omegaconf import OmegaConf
         from torchrl.data import Bounded, Composite, Unbounded
 
@@ -309,7 +311,7 @@ class CheckpointPolicy(Policy):
                 if rec.get(k) is not None and self.env_overrides.get(k) != rec.get(k):
                     raise PolicyError(f"checkpoint {path}: recorded {k}={rec.get(k)!r}, its config gives {self.env_overrides.get(k)!r}")
         self.pipeline = rec
-        self.fingerprint = file_fingerprint(path) if payload is None else str(meta.get("sha256", ""))
+        self.fingerprint = fingerprint or file_fingerprint(path)
         self.config_yaml = ck["config"]
         self.meta = dict(meta)
 
@@ -453,7 +455,7 @@ def _checkpoint_file(s: str | Path, name: str | None = None) -> Policy:
     members = ck.get("members")
     if not isinstance(members, list) or len(members) < 2:
         raise PolicyError(f"ensemble file {path} holds no members (expected 2 or more written by export_ensemble)")
-    pols = [CheckpointPolicy(path.with_name(f"{path.stem}[{i}]"), payload={**m, "meta": {**m["meta"], "sha256": f"{ck['meta']['sha256']}:{i}"}})
+    pols = [CheckpointPolicy(path.with_name(f"{path.stem}[{i}]"), payload=m, fingerprint=f"{ck['meta']['sha256']}:{i}")
             for i, m in enumerate(members)]
     return EnsemblePolicy(pols, reduce=str(ck["meta"].get("reduce", "mean")), name=name or path.stem, spec=str(path),
                           fingerprint=file_fingerprint(path))
