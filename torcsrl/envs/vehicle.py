@@ -997,17 +997,13 @@ class CarFleet:
 
     def _substep_numpy(self, rot: np.ndarray, drive_a: np.ndarray, brake_a: np.ndarray, aero: np.ndarray,
                        abs_on: np.ndarray | None, tcs_on: np.ndarray | None) -> None:
-        prm, n, cid = self.params, self.n, self.client
+        prm, n = self.params, self.n
         r = prm.wheel_radius
         # Suspension: one ray batch for every wheel of every car; a miss counts as far below.
         if self.ground == "plane":
             frac = _plane_hits(self._ray_pts[:, 0:4, 2], self._ray_pts[:, 4:8, 2])
         else:
-            pts = self._ray_pts.tolist()
-            frm = [w for car in pts for w in car[0:4]]
-            to = [w for car in pts for w in car[4:8]]
-            hits = p.rayTestBatch(frm, to, numThreads=1, collisionFilterMask=GROUND_GROUP, physicsClientId=cid)
-            frac = np.array([h[2] if h[0] >= 0 else 9.0 for h in hits]).reshape(n, 4)
+            frac = self._ray_fracs()
         vp = (self._twist_b @ self._jac_t).reshape(n, 4, 3)  # contact-point velocities (body frame)
         fz = self._k_a - self._k_l * frac - self._damp * vp[:, :, 2] \
             + np.maximum(self._bump_a - self._bump_l * frac, 0.0)
@@ -1043,38 +1039,32 @@ class CarFleet:
         forces = (f_ground[:, :, None] * ground_xy[:, None, :]).real + fz[:, :, None] * self._rot[:, None, 2, :]
         wrench = forces.reshape(n, 12) @ self._jac + aero
         world = np.matmul(wrench.reshape(n, 2, 3), self._rot.transpose(0, 2, 1))  # (R f, R tau)
-        # every car's force, then every car's torque (each body accumulates its own: the same sums as car by car)
-        live, pos = self._live, self._raw[:, 0:3]
-        if live is None:
-            bodies, links, frames, cids = self.bodies, self._links, self._world_frames, self._cids
-        else:  # parked cars: no forces
-            bodies, links, frames, cids = live.bodies, live.links, live.frames, live.cids
-            world, pos = world[live.idx], pos[live.idx]
-        _consume(map(p.applyExternalForce, bodies, links, world[:, 0].tolist(), pos.tolist(), frames, cids))
-        _consume(map(p.applyExternalTorque, bodies, links, world[:, 1].tolist(), frames, cids))
-        for c in self.clients:
-            p.stepSimulation(physicsClientId=c)
-        if self.contact_impulse is not None:
-            self._collect_contacts()
-        self._read_state()
+        self._apply_and_step(world)
 
     def _substep_numba(self, rot: np.ndarray, drive_a: np.ndarray, brake_a: np.ndarray, aero: np.ndarray,
                        abs_on: np.ndarray, tcs_on: np.ndarray) -> None:
         """numba backend: :meth:`_substep_numpy`'s arithmetic in one compiled kernel; the same pybullet calls."""
-        prm, n, cid = self.params, self.n, self.client
-        if self.ground == "plane":
-            frac = self._plane_frac
-        else:
-            pts = self._ray_pts.tolist()
-            frm = [w for car in pts for w in car[0:4]]
-            to = [w for car in pts for w in car[4:8]]
-            hits = p.rayTestBatch(frm, to, numThreads=1, collisionFilterMask=GROUND_GROUP, physicsClientId=cid)
-            frac = np.array([h[2] if h[0] >= 0 else 9.0 for h in hits]).reshape(n, 4)
+        prm = self.params
+        frac = self._plane_frac if self.ground == "plane" else self._ray_fracs()
         self._omega, self._fz, world = self._kernels.substep(
             frac, self._twist_b, self._rot, self._ground_xy, rot, self._omega, self._mu, self._crr_a, drive_a, brake_a,
             abs_on, tcs_on, aero, self._contact_local, self._k_a, self._k_l, self._damp, float(self._bump_a),
             float(self._bump_l), float(prm.max_wheel_load), float(prm.low_speed), self._inv_kp, self._inv_ap,
             float(prm.wheel_radius), self._wheel_a, float(prm.shape_c), self._mf_b, float(prm.peak_slip_ratio))
+        self._apply_and_step(world)
+
+    def _ray_fracs(self) -> np.ndarray:
+        """Suspension ray hit fractions ``[N, 4]`` from pybullet's ray test (ground="raycast"); 9.0 for a miss."""
+        pts = self._ray_pts.tolist()
+        frm = [w for car in pts for w in car[0:4]]
+        to = [w for car in pts for w in car[4:8]]
+        hits = p.rayTestBatch(frm, to, numThreads=1, collisionFilterMask=GROUND_GROUP, physicsClientId=self.client)
+        return np.array([h[2] if h[0] >= 0 else 9.0 for h in hits]).reshape(self.n, 4)
+
+    def _apply_and_step(self, world: np.ndarray) -> None:
+        """numpy and numba backends: apply every live car's world-frame force and torque ``[N, 2, 3]`` at its COM (every
+        car's force, then every car's torque: each body accumulates its own, the same sums as car by car), step every
+        world, book contacts, read the new state."""
         live, pos = self._live, self._raw[:, 0:3]
         if live is None:
             bodies, links, frames, cids = self.bodies, self._links, self._world_frames, self._cids
