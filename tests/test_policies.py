@@ -92,3 +92,16 @@ def test_ensemble_bad_input_fails_in_one_line(tmp_path):
         assert "\n" not in str(err.value), spec
     with pytest.raises(PolicyError, match="at least 2 checkpoints"):
         EnsemblePolicy([CheckpointPolicy(A)])
+
+
+def test_evaluate_drives_an_ensemble_spec(tmp_path, monkeypatch):
+    """python -m torcsrl.evaluate --policy 'a.pt+b.pt@cautious': a time trial with its table, under outputs/evaluate/ensemble2."""
+    import json
+
+    from torcsrl.evaluate.app import main
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["--policy", f"{A}+{B}@cautious", "--track", "oval", "--laps", "1", "--no-plots", "--expert-laps", "0"]) == 0
+    (run,) = (tmp_path / "outputs" / "evaluate" / "ensemble2").iterdir()
+    res = json.loads(next(run.glob("*.json")).read_text())
+    assert "ensemble2" in json.dumps(res) and "cautious" in json.dumps(res)
