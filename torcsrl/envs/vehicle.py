@@ -377,7 +377,12 @@ def _jit():
     if _JIT is False:
         try:
             from torcsrl.envs import _vehicle_jit as mod
-        except ImportError:
+        except ImportError:  # no numba
+            mod = None
+        except (RuntimeError, OSError) as err:  # numba present but unusable here (e.g. no writable cache location)
+            import warnings
+
+            warnings.warn(f"the numba vehicle backend is unavailable ({type(err).__name__}: {err}); using numpy / python", stacklevel=2)
             mod = None
         _JIT = mod
     return _JIT
