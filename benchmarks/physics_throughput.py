@@ -3,11 +3,14 @@
 Usage::
 
     python benchmarks/physics_throughput.py [--rounds 7] [--seconds 0.4]
+    python benchmarks/physics_throughput.py --backend numba numpy python --sizes 1 2 16 32 --control-hz 10 --substeps 20
 
 Prints control steps per second (car-steps/s for a fleet) for :class:`torcsrl.envs.vehicle.CarFleet`
 at 50 Hz control with 200 Hz physics (4 substeps), N = 1, 8, 32 cars in one pybullet client, and
 pybullet's ``racecar/racecar.urdf`` from ``pybullet_data`` (6 joint motors set per control step,
-5 substeps at 240 Hz, base pose and velocity read back), with the ratio ours / reference.
+5 substeps at 240 Hz, base pose and velocity read back), with the ratio ours / reference. ``--backend`` takes several
+integration backends (``CarFleet(backend=...)``: auto, numba, numpy, python), timed side by side in the same rounds;
+``--control-hz`` / ``--substeps`` set the control rate (the training config: 10 Hz x 20 substeps).
 
 Single-threaded (one pybullet DIRECT client per measurement, ``numThreads=1`` ray batches). The
 machine may be shared: every figure is the best of ``--rounds`` interleaved timing rounds, and
@@ -34,11 +37,12 @@ from torcsrl.envs.vehicle import CarFleet, make_ground  # noqa: E402
 CONTROL_HZ = 50.0
 
 
-def make_fleet(n: int, backend: str = "auto") -> tuple[Callable[[], None], Callable[[], None]]:
+def make_fleet(n: int, backend: str = "auto", control_hz: float = CONTROL_HZ,
+               substeps: int = 4) -> tuple[Callable[[], None], Callable[[], None]]:
     """A stepping closure for a fleet of ``n`` cars driving random-ish inputs on asphalt."""
     cid = p.connect(p.DIRECT)
     make_ground(cid)
-    fleet = CarFleet(cid, n, control_hz=CONTROL_HZ, substeps=4, backend=backend)
+    fleet = CarFleet(cid, n, control_hz=control_hz, substeps=substeps, backend=backend)
     fleet.reset(np.arange(n), np.stack([np.arange(n) * 10.0, np.zeros(n)], axis=1), np.zeros(n), 15.0)
     rng = np.random.default_rng(0)
     actions = rng.uniform(-1.0, 1.0, size=(64, 3, n))
@@ -100,33 +104,38 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--rounds", type=int, default=7, help="interleaved timing rounds (best is kept)")
     parser.add_argument("--seconds", type=float, default=0.4, help="length of one timing window [s]")
     parser.add_argument("--sizes", type=int, nargs="+", default=[1, 8, 32], help="fleet sizes N")
-    parser.add_argument("--backend", default="auto", choices=["auto", "numba", "numpy", "python"])
+    parser.add_argument("--backend", nargs="+", default=["auto"], choices=["auto", "numba", "numpy", "python"],
+                        help="integration backends, timed side by side")
+    parser.add_argument("--control-hz", type=float, default=CONTROL_HZ, help="control rate [Hz]")
+    parser.add_argument("--substeps", type=int, default=4, help="physics substeps per control step")
     args = parser.parse_args(argv)
 
     ref_step, ref_close = make_racecar()
-    fleets = {n: make_fleet(n, args.backend) for n in args.sizes}
+    keys = [(b, n) for b in args.backend for n in args.sizes]
+    fleets = {k: make_fleet(k[1], k[0], args.control_hz, args.substeps) for k in keys}
     for _ in range(20):  # warm-up
         ref_step()
         for step, _close in fleets.values():
             step()
     ref_best = 0.0
-    best = {n: 0.0 for n in args.sizes}
+    best = {k: 0.0 for k in keys}
     for _ in range(args.rounds):
         ref_best = max(ref_best, best_rate(ref_step, args.seconds))
-        for n, (step, _close) in fleets.items():
-            best[n] = max(best[n], best_rate(step, args.seconds))
+        for k, (step, _close) in fleets.items():
+            best[k] = max(best[k], best_rate(step, args.seconds))
     ref_close()
     for _step, close in fleets.values():
         close()
 
-    print(f"physics throughput, single thread, best of {args.rounds} interleaved rounds "
-          f"(control {CONTROL_HZ:g} Hz; torcsrl physics 200 Hz = 4 substeps; racecar URDF 240 Hz = 5 substeps)")
-    print(f"{'N cars':>6} | {'torcsrl steps/s':>15} | {'car-steps/s':>11} | {'us/step':>8} | "
+    print(f"physics throughput, single thread, best of {args.rounds} interleaved rounds (control {args.control_hz:g} Hz; "
+          f"torcsrl physics {args.control_hz * args.substeps:g} Hz = {args.substeps} substeps; racecar URDF at 50 Hz x 5 "
+          f"substeps of 240 Hz)")
+    print(f"{'backend':>8} | {'N cars':>6} | {'torcsrl steps/s':>15} | {'car-steps/s':>11} | {'us/step':>8} | "
           f"{'racecar URDF steps/s':>20} | {'ratio (car-steps)':>17}")
-    print("-" * 95)
-    for n in args.sizes:
-        rate = best[n]
-        print(f"{n:>6} | {rate:>15.0f} | {rate * n:>11.0f} | {1e6 / rate:>8.0f} | {ref_best:>20.0f} | "
+    print("-" * 106)
+    for b, n in keys:
+        rate = best[(b, n)]
+        print(f"{b:>8} | {n:>6} | {rate:>15.0f} | {rate * n:>11.0f} | {1e6 / rate:>8.0f} | {ref_best:>20.0f} | "
               f"{rate * n / ref_best:>17.2f}")
 
 
