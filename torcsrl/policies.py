@@ -787,6 +787,12 @@ def _sight(name: str) -> float:
         raise PolicyError(f"{name!r}: the sight distance after 'sensor_sight:' must be a number of metres, e.g. sensor_sight:70") from None
 
 
+def is_ensemble_spec(spec: str | Path) -> bool:
+    """Whether ``spec`` names an ensemble of checkpoints (``a.pt+b.pt[+...][@reduce]``; a file whose name has a ``+``
+    is still a file)."""
+    return "+" in str(spec) and not Path(str(spec)).exists()
+
+
 def load_policy(spec: str | Path | Policy) -> Policy:
     """The :class:`Policy` for ``spec`` (see the module docstring); :class:`PolicyError` (one line)
     for a missing, corrupt or unusable checkpoint."""
@@ -815,7 +821,7 @@ def load_policy(spec: str | Path | Policy) -> Policy:
         if not REFERENCE_CAMERA_POLICY.is_file():
             raise PolicyError(f"the camera driver {REFERENCE_CAMERA_POLICY} is not shipped yet; pass a checkpoint path")
         return _checkpoint_file(REFERENCE_CAMERA_POLICY, name="reference_camera")
-    if "+" in s and not Path(s).exists():  # an ensemble: a.pt+b.pt[+...][@reduce]
+    if is_ensemble_spec(s):
         return EnsemblePolicy.from_spec(s)
     return _checkpoint_file(s)
 

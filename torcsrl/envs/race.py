@@ -131,8 +131,8 @@ class RaceCore:
             ``ceil(n / cars_per_world)`` worlds (:class:`~torcsrl.envs.vehicle.CarFleet`; each car moves as it
             would in one world, and a world's collision broadphase sorts through its own cars only: many cars
             on one line are cheaper). Not with traffic or a camera.
-        vehicle_backend: how :class:`~torcsrl.envs.vehicle.CarFleet` integrates the cars: ``auto`` (numba where it
-            is installed, the fastest), ``numba``, ``numpy`` or ``python`` (the same equations, to rounding).
+        vehicle_backend: how :class:`~torcsrl.envs.vehicle.CarFleet` integrates the cars: ``auto`` (python for one
+            car, numba for more where it is installed), ``numba``, ``numpy`` or ``python`` (the same equations, to rounding).
         seed: seed of the env's random generator (tracks, surfaces, spawn).
     """
 

@@ -61,7 +61,7 @@ the same equations (a test checks they agree to rounding): ``"numpy"`` runs a fi
 vectorised operations on ``[N, 4]`` arrays per substep, independent of N (~80 calls of ~1 us);
 ``"python"`` runs them car by car in floats and beats numpy for a few cars; ``"numba"`` is the numpy
 backend with that arithmetic in two compiled kernels (:mod:`torcsrl.envs._vehicle_jit`) and is the
-fastest at every N (this CPU, 20 substeps a step: 0.40 / 0.64 / 1.74 / 3.17 ms a step for 1 / 4 / 16 / 32
+fastest from two cars on (this CPU, 20 substeps a step: 0.40 / 0.64 / 1.74 / 3.17 ms a step for 1 / 4 / 16 / 32
 cars, against numpy's 1.47 / 1.85 / 3.04 / 4.73 and python's 0.41 / 1.49 / 5.72 / 11.5; for one car in the env at
 50 Hz x 4 substeps python is ~6 % faster: 3,417 against 3,213 steps/s). ``backend="auto"`` picks python for one car,
 numba for more where it is installed, else python for N <= 4 and numpy above. The public state arrays are new arrays after
@@ -391,6 +391,14 @@ def _jit():
 _JIT: Any = False
 
 
+def _auto_backend(n_cars: int, several_worlds: bool) -> str:
+    """``backend="auto"``: python for one car; numba for more (numpy without numba, or python up to
+    :data:`PYTHON_BACKEND_MAX_CARS` cars in one world)."""
+    if _jit() is not None and (n_cars > 1 or several_worlds):
+        return "numba"
+    return "python" if n_cars <= PYTHON_BACKEND_MAX_CARS and not several_worlds else "numpy"
+
+
 def _consume(calls) -> None:
     """Run an iterator of calls for their effects (``map`` over a C function: no Python frame per call)."""
     deque(calls, maxlen=0)
@@ -515,9 +523,7 @@ class CarFleet:
         several = len(clients) > 1
         if several and (backend == "python" or ground != "plane" or collide):
             raise ValueError("cars in several worlds need backend numpy or numba (or auto), ground plane and collide=False")
-        self.backend = backend if backend != "auto" else \
-            ("python" if n_cars == 1 or (n_cars <= PYTHON_BACKEND_MAX_CARS and _jit() is None) else
-             "numba" if _jit() is not None else "numpy") if not several else ("numba" if _jit() is not None else "numpy")
+        self.backend = backend if backend != "auto" else _auto_backend(n_cars, several)
         self._kernels = _jit() if self.backend == "numba" else None
         #: the fleet's worlds (pybullet clients); ``client`` is the first
         self.clients = clients

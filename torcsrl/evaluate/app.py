@@ -206,8 +206,10 @@ def run_config(cfg: Any, out: str | Path | None = None, verbose: bool = True) ->
     deg = parse_degradation(c["corruption"], c["severity"]) if c["corruption"] else None
     if not c["corruption"] and c["severity"] not in (None, 0):
         raise EvalError(f"severity={c['severity']} needs a degradation (corruption=<name>, --degradation <name>)")
-    spec = str(c["policy"])  # an ensemble spec (a.pt+b.pt@reduce) is named after its member count
-    name = f"ensemble{spec.count('+') + 1}" if "+" in spec and not Path(spec).exists() else Path(spec).stem
+    from torcsrl.policies import is_ensemble_spec
+
+    spec = str(c["policy"])  # an ensemble spec (a.pt+b.pt@reduce) is named after its member count, as EnsemblePolicy
+    name = f"ensemble{spec.count('+') + 1}" if is_ensemble_spec(spec) else Path(spec).stem
     out = out or c["out"] or str(Path("outputs") / "evaluate" / name / time.strftime("%Y-%m-%d_%H-%M-%S"))
     if c["mode"] not in ("trial", "race"):
         raise EvalError(f"mode must be trial or race, got {c['mode']!r}")
