@@ -42,6 +42,9 @@ def test_both_configs_compose_and_the_flags_are_aliases():
     d = check_keys(rep, "report")
     assert d["policies"] == ["reference", "heuristic"] and d["severities"] == [0, 2] and d["n_boot"] == 50 and d["episodes"] == 3
     assert set(d) == set(ReportConfig.__dataclass_fields__) | {"out", "cache", "from_dir"}
+    race = check_keys(compose("evaluate", flags_to_overrides(["--mode", "race", "--pace", "0.85", "--opponents", "3"], EVAL_FLAGS)),
+                      "evaluate")  # a decimal stays a number (it came back as the string '0.85' once)
+    assert race["pace"] == 0.85 and race["opponents"] == 3 and race["mode"] == "race"
     with pytest.raises(AppError, match="unknown flag --lapz"):
         flags_to_overrides(["--lapz", "3"], EVAL_FLAGS)
     with pytest.raises(AppError, match="unknown key"):

@@ -259,3 +259,39 @@ def test_bad_race_stage_and_algos_without_stages():
         validate(cfg)
     with pytest.raises(ConfigError, match=r"curriculum: algo=ppo does not follow a curriculum .*; allowed: curriculum=none"):
         validate(compose_cfg("algo=ppo", "curriculum=robust"))
+
+
+def test_bc_refuses_a_curriculum_and_dagger_rounds_follow_its_stages(tmp_path, monkeypatch):
+    """algo=bc has no rounds to follow stages (one line); algo=dagger's rounds drive the stage's env (here: the second
+    stage puts 2 scripted cars in the learner's race), a round's validation promotes, the checkpoint keeps the stage."""
+    with pytest.raises(ConfigError, match=r"curriculum: algo=bc does not follow a curriculum .*algo=dagger"):
+        validate(compose_cfg("algo=bc", "curriculum=racer", "demos.frames=100"))
+    cfg = compose_cfg("experiment=racer", "demos.frames=300", "demos.episode_steps=150", "algo.bc_steps=20", "algo.batch_size=32",
+                      "demos.dagger_rounds=2", "demos.dagger_frames=150", "eval.max_steps=40", "eval.per_track=false",
+                      "eval.env.track=oval", "env.track=oval", "env.procedural.share=0.0", f"run_dir={tmp_path}",
+                      "progress=false", "curriculum.stages.solo.promote.at_least=0.0")
+    with open_dict(cfg):
+        cfg.curriculum.stages.pop("slow_traffic")
+        cfg.curriculum.stages.experts.overrides["env.traffic"] = {"opponents": 2, "driver": {"kind": "expert", "pace": 0.5},
+                                                                   "start": "grid", "order": "fixed", "learner_slot": "last"}
+        cfg.curriculum.stages.experts.overrides["eval.env.traffic"] = None
+    validate(cfg)
+    seen: list = []
+    import torcsrl.demos as demos_mod
+
+    real_demo_env = demos_mod.make_demo_env
+
+    def spy_demo_env(c, seed):  # the real env; only notes how many cars each demonstration / DAgger env races
+        env = real_demo_env(c, seed)
+        seen.append(int(c.env.traffic.opponents) if c.env.traffic else 0)
+        assert "opponents_clean" in env.observation_spec.keys()  # the racer teacher reads the clean sectors
+        return env
+
+    monkeypatch.setattr(demos_mod, "make_demo_env", spy_demo_env)
+    out = train(cfg)
+    assert out["train/stage_name"] == "experts" and out["train/stage"] == 1
+    assert seen[0] == 0 and seen[-1] == 2  # the demonstrations alone, the last DAgger round among 2 cars
+    summary = json.loads((tmp_path / "curriculum.json").read_text())
+    assert summary["stage"] == 1 and [h["to"] for h in summary["promotions"]] == ["experts"]
+    ck = load_checkpoint(out["checkpoint"])
+    assert ck["curriculum"]["stage"] == 1

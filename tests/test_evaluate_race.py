@@ -42,3 +42,14 @@ def test_race_summary_counts_dnf_and_table_rows():
 def test_race_mode_bad_input_one_line():
     with pytest.raises(EvalError, match="do not fit the grid"):
         evaluate_race("expert", "oval", opponents=20, verbose=False)
+
+
+def test_race_workers_give_the_same_races(tmp_path):
+    """workers=2 spreads the tracks' races over processes: the same rows as in one process (seeded per track and race)."""
+    tr = {"opponents": 1, "driver": {"kind": "expert", "pace": 0.6}, "order": "random"}
+    kw = {"laps": 1, "traffic": tr, "env_kwargs": {"control_hz": 10, "substeps": 20}, "plots": False, "verbose": False}
+    one = evaluate_race("expert", ["oval", "hairpins"], workers=1, **kw)
+    two = evaluate_race("expert", ["oval", "hairpins"], workers=2, **kw)
+    keys = ("track", "position", "collisions", "steps", "fastest_lap", "env_seed")
+    assert [tuple(r[k] for k in keys) for r in one["episodes"]] == [tuple(r[k] for k in keys) for r in two["episodes"]]
+    assert [r["track"] for r in two["episodes"]] == ["oval", "hairpins"]

@@ -105,3 +105,82 @@ def test_evaluate_drives_an_ensemble_spec(tmp_path, monkeypatch):
     (run,) = (tmp_path / "outputs" / "evaluate" / "ensemble2").iterdir()
     res = json.loads(next(run.glob("*.json")).read_text())
     assert "ensemble2" in json.dumps(res) and "cautious" in json.dumps(res)
+
+
+# ------------------------------------------------------------------------------ the fast sensor teacher and the racer
+def _straight_road(half_width_m: float = 6.0, speed_kmh: float = 72.0):
+    """Beams [m] and a raw state of a car on the axis of a straight road, heading along it."""
+    import math
+
+    import numpy as np
+
+    from torcsrl.envs.sensors import RANGEFINDER_ANGLES_DEG, STATE_SLOTS
+
+    r = np.array([min(200.0, half_width_m / max(abs(math.sin(math.radians(a))), 1e-9)) for a in RANGEFINDER_ANGLES_DEG])
+    st = np.zeros(len(STATE_SLOTS))
+    st[STATE_SLOTS.index("speedX_kmh")] = speed_kmh
+    return r, st
+
+
+def _sectors(**cars):
+    """36 free sectors (200 m) with a car at ``s<k>=distance``."""
+    import numpy as np
+
+    opp = np.full(36, 200.0)
+    for k, dist in cars.items():
+        opp[int(k[1:])] = dist
+    return opp
+
+
+def test_racer_passes_lifts_and_brakes_from_its_opponents_sectors():
+    import math
+
+    racer = load_policy("racer")
+    r, st = _straight_road(speed_kmh=36.0)  # 10 m/s: lift within 10 + 0.8 x 10 = 18 m, brake within 6 + 0.5 x 10 = 11 m
+    assert racer.traffic(r, st, _sectors()) == (0.0, 1.0)  # an empty road: sensor_fast
+    t_right, cap = racer.traffic(r, st, _sectors(s18=25.0))  # 25 m ahead, 2.2 m right of the axis (sector 18: -5 deg)
+    t_left, _ = racer.traffic(r, st, _sectors(s17=25.0))  # ... 2.2 m left of it
+    assert t_right > 0.0 > t_left and cap == 1.0  # moves out on the other side, no lift yet
+    assert abs(t_right * 6.0 + 25.0 * math.sin(math.radians(5.0)) - racer.race.pass_gap_m) < 1e-6  # pass_gap beside it
+    assert racer.traffic(r, st, _sectors(s18=15.0))[1] == 0.0  # in its path within the lift distance
+    assert racer.traffic(r, st, _sectors(s18=8.0))[1] < 0.0  # within the brake distance
+    t, cap = racer.traffic(r, st, _sectors(s9=4.0))  # alongside on the left: keep a pass gap right of it, no braking
+    y_left = 4.0 * math.sin(math.radians(85.0))  # sector 9's centre: 85 degrees left
+    assert y_left - t * 6.0 >= racer.race.pass_gap_m - 1e-6 and cap == 1.0
+    assert racer.traffic(r, st, _sectors(s0=30.0)) == (0.0, 1.0)  # a car behind does not matter
+
+
+def test_racer_overtakes_a_slow_car_that_the_blind_teacher_runs_into(tmp_path):
+    """A real 2-car race on the oval from the back of the grid against a car at 50 km/h on the centre line: the racer
+    passes it without contact; sensor_fast (the same driving, no opponents sensor) hits it."""
+    from torcsrl.evaluate.race import evaluate_race
+
+    tr = {"opponents": 1, "driver": {"kind": "slow", "speed_kmh": 50.0, "line": "centre"}, "order": "fixed", "learner_slot": "last"}
+    kw = {"control_hz": 10, "substeps": 20}
+    racer = evaluate_race("racer", "oval", laps=1, traffic=tr, env_kwargs=kw, plots=False, verbose=False, out_dir=tmp_path / "r")
+    blind = evaluate_race("sensor_fast", "oval", laps=1, traffic=tr, env_kwargs=kw, plots=False, verbose=False, out_dir=tmp_path / "b")
+    a, b = racer["episodes"][0], blind["episodes"][0]
+    assert a["win"] and a["collisions"] == 0 and a["overtakes"] >= 1, a
+    assert b["collisions"] > 0, b
+
+
+def test_fast_teacher_laps_faster_and_the_sensor_drivers_fingerprints_differ():
+    from torcsrl.evaluate import run_cell
+
+    kw = {"control_hz": 10, "substeps": 20}
+    fast, _ = run_cell(load_policy("sensor_fast"), "oval", "asphalt", laps=2, env_kwargs=kw)
+    grip, _ = run_cell(load_policy("sensor_grip"), "oval", "asphalt", laps=2, env_kwargs=kw)
+    assert fast[0]["success"] and grip[0]["success"] and fast[0]["off_track_events"] == 0
+    assert fast[0]["fastest_lap"] < 0.97 * grip[0]["fastest_lap"], (fast[0]["fastest_lap"], grip[0]["fastest_lap"])
+    prints = {load_policy(s).fingerprint for s in ("sensor", "sensor_grip", "sensor_fast", "racer", "expert", "expert_centre")}
+    assert len(prints) == 6  # report caches are keyed by them
+
+
+def test_centre_line_expert_drives_and_an_unknown_line_fails_in_one_line():
+    from torcsrl.evaluate import run_cell
+    from torcsrl.policies import ExpertPolicy
+
+    rows, _ = run_cell(load_policy("expert_centre"), "hairpins", "asphalt", laps=1, env_kwargs={"control_hz": 10, "substeps": 20})
+    assert rows[0]["success"]
+    with pytest.raises(PolicyError, match=r"line='inside'; allowed: racing, centre"):
+        ExpertPolicy(line="inside")

@@ -321,7 +321,8 @@ def _check_key(key: str, where: str, env_name: str) -> None:
 def problems(cfg: DictConfig, base_problems: list[str]) -> list[str]:
     """The curriculum's problems as config-check lines: its structure (:meth:`Curriculum.from_config`), then every
     stage's config checked like the base config (only what the stage adds to ``base_problems``), prefixed with the
-    stage's name. Refused with algorithms whose loop does not follow a curriculum (imitation, on-policy)."""
+    stage's name. Refused with algorithms whose loop does not follow a curriculum (bc, on-policy); DAgger's rounds
+    follow the stages (:mod:`torcsrl.imitation`)."""
     try:
         cur = Curriculum.from_config(cfg)
     except CurriculumError as err:
@@ -331,9 +332,9 @@ def problems(cfg: DictConfig, base_problems: list[str]) -> list[str]:
     from torcsrl.agents import IMITATION, ON_POLICY
 
     algo = (cfg.get("algo") or {}).get("name")
-    if algo in (*IMITATION, *ON_POLICY):
-        return [f"curriculum: algo={algo} does not follow a curriculum (its loop has no stages); allowed: curriculum=none, or an "
-                "off-policy algo (ddpg, td3, d4pg, sac)"]
+    if algo in (*IMITATION, *ON_POLICY) and algo != "dagger":
+        return [f"curriculum: algo={algo} does not follow a curriculum (its loop has no stages); allowed: curriculum=none, an "
+                "off-policy algo (ddpg, td3, d4pg, sac), or algo=dagger (its rounds follow the stages)"]
     if base_problems:
         return []  # the stages are checked once the base config is sound
     from torcsrl.config import problems as config_problems

@@ -45,7 +45,7 @@ EXTRA_KEYS = ("expert_action", "privileged")
 #: under the wheels ``info/surfaceMu``. A camera student regresses it as an auxiliary target (``algo.aux_privileged``).
 PRIVILEGED_SLOTS: tuple[str, ...] = tuple(f"track_{i}" for i in range(19)) + ("angle", "trackPos", "surfaceMu")
 #: Teachers that label demonstrations (:func:`make_teacher`).
-TEACHERS = ("expert", "sensor", "sensor_grip", "sensor_sight[:<metres>]")
+TEACHERS = ("expert", "expert_centre", "sensor", "sensor_grip", "sensor_fast", "racer", "racer_bold", "sensor_sight[:<metres>]")
 
 
 def known_teacher(name: str) -> bool:
@@ -74,7 +74,7 @@ def make_demo_env(cfg: DictConfig, seed: int):
     kw = env_kwargs(cfg.env, seed=int(seed), device="cpu", num_cars=1,
                     max_steps=int(cfg.demos.episode_steps) if cfg.get("demos") else int(cfg.env.max_steps), **extra)
     base = build_base_env("race", kw)
-    clean = [k for k in ("rangefinder", "state") if k in base.observation_spec.keys()]
+    clean = [k for k in ("rangefinder", "state", "opponents") if k in base.observation_spec.keys()]
     return _transformed(base, [KeepClean(clean), *observation_transforms(cfg, base, seed=int(seed))])
 
 
@@ -89,10 +89,19 @@ def make_teacher(name: str):
 
     if name == "expert":
         return ExpertPolicy(state_key="state_clean")
+    if name == "expert_centre":
+        return ExpertPolicy(state_key="state_clean", line="centre")
     if name == "sensor":
         return SensorDriver(rangefinder_key="rangefinder_clean", state_key="state_clean")
     if name == "sensor_grip":
         return SensorDriver(decel_per_mu=SensorDriver.GRIP_DECEL_PER_MU, rangefinder_key="rangefinder_clean", state_key="state_clean")
+    if name == "sensor_fast":
+        return SensorDriver(**SensorDriver.FAST, rangefinder_key="rangefinder_clean", state_key="state_clean")
+    if name in ("racer", "racer_bold"):  # reads the clean opponents sectors where the env has them (else: sensor_fast)
+        from torcsrl.policies import SensorRacer
+
+        bold = SensorRacer.BOLD if name == "racer_bold" else {}
+        return SensorRacer(rangefinder_key="rangefinder_clean", state_key="state_clean", opponents_key="opponents_clean", **bold)
     if name == "sensor_sight" or name.startswith("sensor_sight:"):
         from torcsrl.policies import PolicyError, _sight
 

@@ -8,6 +8,13 @@ a checkpoint's (a student distilled before: same observations and scaling); with
 validates it and every later round refits it on everything. Checkpoints hold the
 actor in the same format as the RL agents', so ``evaluate``, ``report`` and ``policies export`` take them
 as they are.
+
+With a curriculum (``curriculum=...``, :mod:`torcsrl.curriculum`; ``algo=dagger`` only) the DAgger rounds follow its
+stages: the demonstrations are written in the first stage's env, every round drives the current stage's env and is
+validated in its validation envs, and the stage's criterion reads each round's validation (one validation per round);
+a promotion rebuilds the validation envs. ``train/stage`` is logged, ``<run_dir>/curriculum.json`` holds the
+promotions, and every checkpoint the curriculum's state. (An imitation run does not resume mid-run: a killed one
+starts again.)
 """
 
 from __future__ import annotations
@@ -34,7 +41,9 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     from torcsrl.nets import shift_pad
     from torcsrl.demos import EXTRA_KEYS, PRIVILEGED_SLOTS, DemoError, label_rollouts, make_demo_env, mixed_sample
     from torcsrl.objectives.common import ObsUnpacker
-    from torcsrl.train import _run_dir, expected_meta, frame_history, init_actor, make_demos, make_eval_envs, make_train_env, pipeline_record, validate_all
+    from torcsrl.curriculum import Curriculum
+    from torcsrl.train import (_log_promotion, _run_dir, _write_curriculum, expected_meta, frame_history, init_actor, make_demos,
+                               make_eval_envs, make_train_env, pipeline_record, validate_all)
     from torcsrl.utils.checkpoint import checkpoint_path, latest_checkpoint, prune, save_checkpoint
     from torcsrl.utils.logging import log_metrics, make_loggers
     from torcsrl.utils.replay import ReplayBuffer
@@ -60,11 +69,15 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         started = init_actor(str(init.actor), actor, cfg, env, obs_keys) if init is not None and init.get("actor") else None
         actor = actor.to(device)
         optim = agent.make_optimizers(cfg.algo, actor)
-        demos = make_demos(cfg, env, run_dir)
+        curriculum = Curriculum.from_config(cfg)  # DAgger rounds follow its stages (none: cfg itself)
+        demos = make_demos(curriculum.config(cfg, stage=0), env, run_dir)
         if demos is None:
             raise ValueError(f"algo={algo} imitates demonstrations: set demos.frames > 0 (written for this run) or demos.path")
         meta = {**expected_meta(cfg, env, obs_keys), "pipeline": pipeline_record(cfg, env)}
-        eval_envs = make_eval_envs(cfg)
+        eval_envs = make_eval_envs(curriculum.config(cfg))
+        if curriculum.active:
+            _write_curriculum(curriculum, run_dir)
+            print(f"[torcsrl] curriculum: stage {curriculum.stage} {curriculum.name!r} of {', '.join(curriculum.names)}", file=sys.stderr)
         loggers = make_loggers(cfg.logger.backends, run_dir, cfg.logger.exp_name, cfg.logger.wandb_project, cfg.logger.wandb_mode)
         _, img = split_obs_keys(env.observation_spec, obs_keys)
         net = SimpleNamespace(actor_network=actor, obs=ObsUnpacker(obs_keys, img, shift_pad(cfg.algo.encoder.augment_shift)))
@@ -91,7 +104,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
             if rnd > 0:  # DAgger: the learner drives (the expert's noisy action with probability beta), the expert labels
                 beta = float(cfg.demos.dagger_beta) * 0.5 ** (rnd - 1)
                 agg = ReplayBuffer(int(cfg.demos.dagger_frames), batch_size, obs_keys, extra_keys=EXTRA_KEYS, history=frame_history(cfg))
-                denv = make_demo_env(cfg, int(cfg.seed) + 31 * rnd)
+                denv = make_demo_env(curriculum.config(cfg), int(cfg.seed) + 31 * rnd)
                 try:
                     actor.eval()
                     stats = label_rollouts(denv, int(cfg.demos.dagger_frames), agg, sigma_max=float(cfg.demos.sigma_max), learner=learner,
@@ -129,13 +142,23 @@ def train(cfg: DictConfig) -> dict[str, Any]:
             actor.eval()
             ev = validate_all(eval_envs, policy, int(cfg.eval.episodes), int(cfg.eval.max_steps))
             actor.train()
-            log_metrics(loggers, ev, updates)
-            print(f"[torcsrl] {algo} round {rnd}: loss/bc {float(bc):.4f}, eval/laps {ev['eval/laps']:.2f}, eval/reward {ev['eval/reward']:.1f}",
-                  file=sys.stderr)
-            save_checkpoint(checkpoint_path(ckpt_dir, updates), {"meta": meta, "actor": actor.state_dict(), "config": OmegaConf.to_yaml(cfg),
-                                                                 "counters": {"updates": updates, "frames": frames, "round": rnd}})
+            log_metrics(loggers, {**ev, **({"train/stage": curriculum.stage} if curriculum.active else {})}, updates)
+            print(f"[torcsrl] {algo} round {rnd}: loss/bc {float(bc):.4f}, eval/laps {ev['eval/laps']:.2f}, eval/reward {ev['eval/reward']:.1f}"
+                  + (f", stage {curriculum.name!r}" if curriculum.active else ""), file=sys.stderr)
+            payload = {"meta": meta, "actor": actor.state_dict(), "config": OmegaConf.to_yaml(cfg),
+                       "counters": {"updates": updates, "frames": frames, "round": rnd}}
+            if curriculum.active:
+                promotion = curriculum.observe(ev, frames)
+                if promotion is not None:  # the next round drives the next stage's env; its validation envs now
+                    for e in eval_envs.values():
+                        e.close()
+                    eval_envs = make_eval_envs(curriculum.config(cfg))
+                    _log_promotion(loggers, promotion, curriculum, run_dir)
+                payload["curriculum"] = curriculum.state_dict()
+            save_checkpoint(checkpoint_path(ckpt_dir, updates), payload)
             prune(ckpt_dir, int(cfg.checkpoint.keep))
-            result = {"loss/bc": float(bc), **ev}
+            result = {"loss/bc": float(bc), **ev, **({"train/stage": curriculum.stage, "train/stage_name": curriculum.name}
+                                                      if curriculum.active else {})}
     finally:
         for e in (env, *eval_envs.values()):
             if not e.is_closed:

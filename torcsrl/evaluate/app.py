@@ -220,7 +220,7 @@ def run_config(cfg: Any, out: str | Path | None = None, verbose: bool = True) ->
             raise EvalError("mode=race drives clean sensors; allowed: corruption=null with mode=race")
         return evaluate_race(c["policy"], c["tracks"], c["surfaces"], laps=c["laps"], seed=c["seed"], out_dir=out,
                              episodes=c["episodes"], opponents=c["opponents"], pace=c["pace"], env_kwargs={"start": c["start"]},
-                             max_steps=c["max_steps"], plots=c["plots"], verbose=verbose)
+                             max_steps=c["max_steps"], plots=c["plots"], verbose=verbose, workers=c["workers"])
     return evaluate(c["policy"], c["tracks"], c["surfaces"], laps=c["laps"], seed=c["seed"], out_dir=out, degradation=deg,
                     episodes=c["episodes"], max_steps=c["max_steps"], env_kwargs={"start": c["start"]},
                     expert_laps=c["expert_laps"], plots=c["plots"], workers=c["workers"], verbose=verbose)

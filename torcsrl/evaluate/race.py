@@ -128,14 +128,27 @@ def race_table(summaries: Sequence[Mapping[str, Any]]) -> tuple[list[str], list[
     return list(RACE_COLUMNS), body
 
 
+_RACE_POLICIES: dict[str, Policy] = {}
+
+
+def _race_job(spec: str | Policy, name: str, surface: str | None, tr: Mapping[str, Any], kw: dict) -> tuple[list, list]:
+    """One track's races (a worker's task: the policy is loaded once per process)."""
+    if isinstance(spec, str):
+        if spec not in _RACE_POLICIES:
+            _RACE_POLICIES[spec] = load_policy(spec)
+        spec = _RACE_POLICIES[spec]
+    return run_race_cell(spec, name, surface, tr, **kw)
+
+
 def evaluate_race(policy: str | Policy, tracks: str | Sequence[str], surfaces: Any = None, laps: int = 5, seed: int = 0,
                   out_dir: str | Path | None = None, *, episodes: int = 1, opponents: int = 3,
                   pace: float | Sequence[float] = 0.85, start: str = "grid", traffic: Mapping[str, Any] | None = None,
                   max_steps: int | None = None, env_kwargs: Mapping[str, Any] | None = None, plots: bool = True,
-                  verbose: bool = True) -> dict[str, Any]:
+                  verbose: bool = True, workers: int = 1) -> dict[str, Any]:
     """Races of ``policy`` against ``opponents`` experts at ``pace`` (or ``traffic``) on ``tracks`` x ``surfaces``;
     returns ``{"config", "policy", "summary", "episodes", "files"}`` and writes race.md / .csv / .json (and a
-    top-down plot of the first race per track) to ``out_dir``."""
+    top-down plot of the first race per track) to ``out_dir``. ``workers`` > 1: the tracks' races in that many
+    processes (a policy given by its spec; the same races, seeded per track and race, as in one process)."""
     import sys
 
     from torcsrl.envs.traffic import TrafficError, TrafficSpec
@@ -154,24 +167,30 @@ def evaluate_race(policy: str | Policy, tracks: str | Sequence[str], surfaces: A
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
     all_rows, summaries, files = [], [], []
-    for name in names:
-        for surface in surfs:
-            rows, traces = run_race_cell(pol, name, surface, tr, laps=laps, episodes=episodes, seed=seed, max_steps=max_steps,
-                                         env_kwargs=env_kwargs, trace=plots and out is not None)
-            s = race_summary(rows)
-            summaries.append(s)
-            all_rows += rows
-            if verbose:
-                print(f"[torcsrl.evaluate] race {pol.name} on {name}/{s['surface']}: won {s['wins']}/{s['races']}, "
-                      f"finished {s['finished']}/{s['races']}, {s['collisions_per_race']:.2f} collisions/race", file=sys.stderr)
-            if out is not None and plots and traces and traces[0]:
-                from torcsrl.envs import tracks as _tracks
-                from torcsrl.evaluate.plots import plot_race
+    from torcsrl.evaluate.app import map_tasks
 
-                r0 = rows[0]
-                title = (f"{pol.name} vs {r0['opponents']} on {name}: "
-                         + (f"P{r0['position']}" if r0["position"] else "DNF") + f", {r0['collisions']} collision(s)")
-                files.append(str(plot_race(_tracks.load(name, surface=surface), traces[0], out / f"race_{name}_{s['surface']}.png", title)))
+    kw = {"laps": laps, "episodes": episodes, "seed": seed, "max_steps": max_steps, "env_kwargs": env_kwargs,
+          "trace": plots and out is not None}
+    cells = [(name, surface) for name in names for surface in surfs]
+    spec = policy if isinstance(policy, str) and int(workers) > 1 else pol
+    results = map_tasks(_race_job, [(spec, name, surface, tr, kw) for name, surface in cells], workers=int(workers))
+    for (name, surface), (rows, traces) in zip(cells, results):
+        for r in rows:
+            r["policy"] = pol.name
+        s = race_summary(rows)
+        summaries.append(s)
+        all_rows += rows
+        if verbose:
+            print(f"[torcsrl.evaluate] race {pol.name} on {name}/{s['surface']}: won {s['wins']}/{s['races']}, "
+                  f"finished {s['finished']}/{s['races']}, {s['collisions_per_race']:.2f} collisions/race", file=sys.stderr)
+        if out is not None and plots and traces and traces[0]:
+            from torcsrl.envs import tracks as _tracks
+            from torcsrl.evaluate.plots import plot_race
+
+            r0 = rows[0]
+            title = (f"{pol.name} vs {r0['opponents']} on {name}: "
+                     + (f"P{r0['position']}" if r0["position"] else "DNF") + f", {r0['collisions']} collision(s)")
+            files.append(str(plot_race(_tracks.load(name, surface=surface), traces[0], out / f"race_{name}_{s['surface']}.png", title)))
     if len(summaries) > 1:
         tot = race_summary(all_rows)
         tot.update(track="all", surface="")

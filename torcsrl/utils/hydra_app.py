@@ -31,7 +31,7 @@ class AppError(ValueError):
 
 
 def _quote(v: str) -> str:
-    if re.fullmatch(r"-?\d+", v) or v in ("null", "true", "false"):
+    if re.fullmatch(r"-?(\d+(\.\d*)?|\.\d+)([eE][-+]?\d+)?", v) or v in ("null", "true", "false"):  # numbers stay numbers
         return v
     return "'" + v.replace("\\", "\\\\").replace("'", "\\'") + "'"
 
