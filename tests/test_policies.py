@@ -184,3 +184,14 @@ def test_centre_line_expert_drives_and_an_unknown_line_fails_in_one_line():
     assert rows[0]["success"]
     with pytest.raises(PolicyError, match=r"line='inside'; allowed: racing, centre"):
         ExpertPolicy(line="inside")
+
+
+def test_the_shipped_racer_reads_the_race_sensors_and_laps_alone():
+    from torcsrl.evaluate import run_cell
+    from torcsrl.policies import REFERENCE_RACER_POLICY
+
+    pol = load_policy("reference_racer")
+    assert REFERENCE_RACER_POLICY.is_file() and pol.obs_keys == ("rangefinder", "state", "opponents")
+    assert pol.env_overrides["control_hz"] == 10
+    rows, _ = run_cell(pol, "oval", "asphalt", laps=1)  # no opponents: its sectors read free (200 m)
+    assert rows[0]["success"] and rows[0]["off_track_events"] == 0

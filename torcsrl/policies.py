@@ -12,6 +12,8 @@ spec                          policy
                               :func:`export_policy` (actor weights + config only)
 ``reference``                 the shipped reference driver, :data:`REFERENCE_POLICY`
 ``reference-td3``             the shipped RL (TD3) driver, :data:`REFERENCE_RL_POLICY`
+``reference_racer``           the shipped racing driver (rangefinder + state + opponents, asphalt),
+                              :data:`REFERENCE_RACER_POLICY`
 ``reference_camera``          the shipped camera-only driver (hood camera + telemetry),
                               :data:`REFERENCE_CAMERA_POLICY` (also ``reference-camera``)
 ``expert``                    the scripted expert (:mod:`torcsrl.envs.expert`: pure pursuit on
@@ -69,6 +71,7 @@ from tensordict import TensorDictBase
 __all__ = [
     "BUILTIN_POLICIES",
     "REFERENCE_CAMERA_POLICY",
+    "REFERENCE_RACER_POLICY",
     "REFERENCE_POLICY",
     "Policy",
     "PolicyError",
@@ -97,8 +100,11 @@ REFERENCE_POLICY = Path(__file__).resolve().parent / "assets" / "reference_dagge
 REFERENCE_RL_POLICY = Path(__file__).resolve().parent / "assets" / "reference_td3.pt"
 #: The shipped camera-only driver, ``reference_camera`` (``reference_camera.md``: command, selection, figures).
 REFERENCE_CAMERA_POLICY = Path(__file__).resolve().parent / "assets" / "reference_camera.pt"
+#: The shipped racing driver, ``reference_racer`` (``reference_racer.md``: command, selection, figures).
+REFERENCE_RACER_POLICY = Path(__file__).resolve().parent / "assets" / "reference_racer.pt"
 #: Names of the built-in policies (anything else is a checkpoint path).
-BUILTIN_POLICIES = ("expert", "heuristic", "sensor", "sensor_grip", "sensor_sight[:<metres>]", "random", "reference", "reference-td3", "reference_camera")
+BUILTIN_POLICIES = ("expert", "expert_centre", "heuristic", "sensor", "sensor_grip", "sensor_fast", "sensor_sight[:<metres>]",
+                    "racer", "racer_bold", "random", "reference", "reference-td3", "reference_camera", "reference_racer")
 
 
 class PolicyError(ValueError):
@@ -967,7 +973,7 @@ def load_policy(spec: str | Path | Policy) -> Policy:
         return SensorRacer()
     if s == "racer_bold":
         drv = SensorRacer(**SensorRacer.BOLD)
-        drv.spec = "racer_bold"
+        drv.spec = drv.name = "racer_bold"
         return drv
     if s == "heuristic":
         return HeuristicPolicy()
@@ -979,7 +985,7 @@ def load_policy(spec: str | Path | Policy) -> Policy:
         return SensorDriver(decel_per_mu=SensorDriver.GRIP_DECEL_PER_MU, sight_m=_sight(s))
     if s == "sensor_fast":
         drv = SensorDriver(**SensorDriver.FAST)
-        drv.spec = "sensor_fast"
+        drv.spec = drv.name = "sensor_fast"
         return drv
     if s == "random":
         return RandomPolicy()
@@ -989,6 +995,10 @@ def load_policy(spec: str | Path | Policy) -> Policy:
         return _checkpoint_file(REFERENCE_POLICY, name="reference")
     if s == "reference-td3":
         return _checkpoint_file(REFERENCE_RL_POLICY, name="reference-td3")
+    if s in ("reference_racer", "reference-racer"):
+        if not REFERENCE_RACER_POLICY.is_file():
+            raise PolicyError(f"the racing driver {REFERENCE_RACER_POLICY} is not shipped yet; pass a checkpoint path")
+        return _checkpoint_file(REFERENCE_RACER_POLICY, name="reference_racer")
     if s in ("reference_camera", "reference-camera"):
         if not REFERENCE_CAMERA_POLICY.is_file():
             raise PolicyError(f"the camera driver {REFERENCE_CAMERA_POLICY} is not shipped yet; pass a checkpoint path")

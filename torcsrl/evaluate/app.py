@@ -83,7 +83,7 @@ def evaluate(
     from torcsrl.envs import tracks as _tracks
 
     want_trace = plots and out is not None
-    tasks = [(pol.spec if pol.spec in BUILTIN_POLICIES or Path(pol.spec).is_file() else pol, pol.name, name, surface, deg,
+    tasks = [(worker_spec(pol), pol.name, name, surface, deg,
               dict(episodes=episodes, laps=laps, seed=seed, max_steps=max_steps, env_kwargs=env_kwargs, trace=want_trace,
                    frames=video_frames if want_trace else 0), int(expert_laps or 0))
              for name in names for surface in surfs]
@@ -149,6 +149,12 @@ def _track_task(policy: Any, name: str, track: str, surface: str | None, deg: De
 
 
 _POLICIES: dict[str, Policy] = {}
+
+
+def worker_spec(pol: Policy) -> str | Policy:
+    """What a worker process gets for ``pol``: its spec where the spec loads it again (a built-in name or a file),
+    else the policy object itself."""
+    return pol.spec if pol.spec in BUILTIN_POLICIES or Path(pol.spec).is_file() else pol
 
 
 def _worker_init() -> None:

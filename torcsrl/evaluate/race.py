@@ -148,7 +148,7 @@ def evaluate_race(policy: str | Policy, tracks: str | Sequence[str], surfaces: A
     """Races of ``policy`` against ``opponents`` experts at ``pace`` (or ``traffic``) on ``tracks`` x ``surfaces``;
     returns ``{"config", "policy", "summary", "episodes", "files"}`` and writes race.md / .csv / .json (and a
     top-down plot of the first race per track) to ``out_dir``. ``workers`` > 1: the tracks' races in that many
-    processes (a policy given by its spec; the same races, seeded per track and race, as in one process)."""
+    processes (the same races, seeded per track and race, as in one process)."""
     import sys
 
     from torcsrl.envs.traffic import TrafficError, TrafficSpec
@@ -167,12 +167,12 @@ def evaluate_race(policy: str | Policy, tracks: str | Sequence[str], surfaces: A
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
     all_rows, summaries, files = [], [], []
-    from torcsrl.evaluate.app import map_tasks
+    from torcsrl.evaluate.app import map_tasks, worker_spec
 
     kw = {"laps": laps, "episodes": episodes, "seed": seed, "max_steps": max_steps, "env_kwargs": env_kwargs,
           "trace": plots and out is not None}
     cells = [(name, surface) for name in names for surface in surfs]
-    spec = policy if isinstance(policy, str) and int(workers) > 1 else pol
+    spec = worker_spec(pol) if int(workers) > 1 else pol
     results = map_tasks(_race_job, [(spec, name, surface, tr, kw) for name, surface in cells], workers=int(workers))
     for (name, surface), (rows, traces) in zip(cells, results):
         for r in rows:
