@@ -295,3 +295,6 @@ def test_bc_refuses_a_curriculum_and_dagger_rounds_follow_its_stages(tmp_path, m
     assert summary["stage"] == 1 and [h["to"] for h in summary["promotions"]] == ["experts"]
     ck = load_checkpoint(out["checkpoint"])
     assert ck["curriculum"]["stage"] == 1
+    # logged against the loop's x axis (updates: one fit of algo.bc_steps per round), like every imitation metric
+    assert [s for s, _ in read_csv_metric(tmp_path, "curriculum/promotion")] == [20]
+    assert [v for _, v in read_csv_metric(tmp_path, "train/stage")][-1] == 1.0

@@ -153,7 +153,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
                     for e in eval_envs.values():
                         e.close()
                     eval_envs = make_eval_envs(curriculum.config(cfg))
-                    _log_promotion(loggers, promotion, curriculum, run_dir)
+                    _log_promotion(loggers, promotion, curriculum, run_dir, step=updates)
                 payload["curriculum"] = curriculum.state_dict()
             save_checkpoint(checkpoint_path(ckpt_dir, updates), payload)
             prune(ckpt_dir, int(cfg.checkpoint.keep))

@@ -820,11 +820,13 @@ def _track_arg(track) -> str:
     return " ".join(str(t) for t in names)
 
 
-def _log_promotion(loggers, event: dict, curriculum: Curriculum, run_dir: Path) -> None:
-    """A promotion: ``train/stage`` and ``curriculum/promotion`` (the number that met the criterion) logged at its frame,
-    a line on stderr, and ``<run_dir>/curriculum.json`` rewritten (stages, current stage, every promotion)."""
-    log_metrics(loggers, {"train/stage": event["stage"], "curriculum/promotion": event["value"]}, event["frames"])
-    print(f"[torcsrl] curriculum: promoted from {event['from']!r} to stage {event['stage']} {event['to']!r} at {event['frames']} steps "
+def _log_promotion(loggers, event: dict, curriculum: Curriculum, run_dir: Path, step: int | None = None) -> None:
+    """A promotion: ``train/stage`` and ``curriculum/promotion`` (the number that met the criterion) logged at ``step``
+    (default: its frame; the imitation loop logs against updates), a line on stderr, and ``<run_dir>/curriculum.json``
+    rewritten (stages, current stage, every promotion)."""
+    log_metrics(loggers, {"train/stage": event["stage"], "curriculum/promotion": event["value"]},
+                event["frames"] if step is None else int(step))
+    print(f"[torcsrl] curriculum: promoted from {event['from']!r} to stage {event['stage']} {event['to']!r} at {event['frames']} frames "
           f"({event['criterion']}: {event['value']:.3g} after {event['validations']} validations)", file=sys.stderr)
     _write_curriculum(curriculum, run_dir)
 

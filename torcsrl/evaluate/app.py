@@ -136,12 +136,7 @@ def evaluate(
 def _track_task(policy: Any, name: str, track: str, surface: str | None, deg: Degradation, kw: dict[str, Any],
                 expert_laps: int) -> tuple[list[dict[str, Any]], list[dict[str, Any]], dict[str, Any]]:
     """One track of :func:`evaluate` (runs in a worker process when ``workers > 1``)."""
-    if isinstance(policy, str):
-        if policy not in _POLICIES:
-            _POLICIES[policy] = load_policy(policy)
-        pol = _POLICIES[policy]
-    else:
-        pol = policy
+    pol = worker_policy(policy)
     pol.name = name
     rows, traces = run_cell(pol, track, surface, deg, **kw)
     ref = expert_reference(track, surface, expert_laps) if expert_laps else {}
@@ -149,6 +144,15 @@ def _track_task(policy: Any, name: str, track: str, surface: str | None, deg: De
 
 
 _POLICIES: dict[str, Policy] = {}
+
+
+def worker_policy(policy: str | Policy) -> Policy:
+    """The policy a task names: loaded once per process from its spec (see :func:`worker_spec`), or the object."""
+    if isinstance(policy, str):
+        if policy not in _POLICIES:
+            _POLICIES[policy] = load_policy(policy)
+        return _POLICIES[policy]
+    return policy
 
 
 def worker_spec(pol: Policy) -> str | Policy:

@@ -128,16 +128,11 @@ def race_table(summaries: Sequence[Mapping[str, Any]]) -> tuple[list[str], list[
     return list(RACE_COLUMNS), body
 
 
-_RACE_POLICIES: dict[str, Policy] = {}
-
-
 def _race_job(spec: str | Policy, name: str, surface: str | None, tr: Mapping[str, Any], kw: dict) -> tuple[list, list]:
     """One track's races (a worker's task: the policy is loaded once per process)."""
-    if isinstance(spec, str):
-        if spec not in _RACE_POLICIES:
-            _RACE_POLICIES[spec] = load_policy(spec)
-        spec = _RACE_POLICIES[spec]
-    return run_race_cell(spec, name, surface, tr, **kw)
+    from torcsrl.evaluate.app import worker_policy
+
+    return run_race_cell(worker_policy(spec), name, surface, tr, **kw)
 
 
 def evaluate_race(policy: str | Policy, tracks: str | Sequence[str], surfaces: Any = None, laps: int = 5, seed: int = 0,
