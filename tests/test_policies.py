@@ -152,10 +152,12 @@ def test_racer_passes_lifts_and_brakes_from_its_opponents_sectors():
 
 def test_racer_overtakes_a_slow_car_that_the_blind_teacher_runs_into(tmp_path):
     """A real 2-car race on the oval from the back of the grid against a car at 50 km/h on the centre line: the racer
-    passes it without contact; sensor_fast (the same driving, no opponents sensor) hits it."""
+    passes it without contact; sensor_fast (the same driving, no opponents sensor) hits it. The slow car is blind to a
+    car alongside (side_gap_m 0): the racer alone keeps them apart."""
     from torcsrl.evaluate.race import evaluate_race
 
-    tr = {"opponents": 1, "driver": {"kind": "slow", "speed_kmh": 50.0, "line": "centre"}, "order": "fixed", "learner_slot": "last"}
+    tr = {"opponents": 1, "driver": {"kind": "slow", "speed_kmh": 50.0, "line": "centre"}, "order": "fixed", "learner_slot": "last",
+          "side_gap_m": 0}
     kw = {"control_hz": 10, "substeps": 20}
     racer = evaluate_race("racer", "oval", laps=1, traffic=tr, env_kwargs=kw, plots=False, verbose=False, out_dir=tmp_path / "r")
     blind = evaluate_race("sensor_fast", "oval", laps=1, traffic=tr, env_kwargs=kw, plots=False, verbose=False, out_dir=tmp_path / "b")

@@ -45,12 +45,14 @@ EXTRA_KEYS = ("expert_action", "privileged")
 #: under the wheels ``info/surfaceMu``. A camera student regresses it as an auxiliary target (``algo.aux_privileged``).
 PRIVILEGED_SLOTS: tuple[str, ...] = tuple(f"track_{i}" for i in range(19)) + ("angle", "trackPos", "surfaceMu")
 #: Teachers that label demonstrations (:func:`make_teacher`).
-TEACHERS = ("expert", "expert_centre", "sensor", "sensor_grip", "sensor_fast", "racer", "racer_bold", "sensor_sight[:<metres>]")
+TEACHERS = ("expert", "expert_centre", "sensor", "sensor_grip", "sensor_fast", "racer", "racer_bold", "sensor_sight[:<metres>]",
+            "sensor_fast_sight[:<metres>]")
 
 
 def known_teacher(name: str) -> bool:
-    """Whether ``name`` is one of :data:`TEACHERS` (``sensor_sight:<metres>`` with any number)."""
-    return name in TEACHERS[:-1] or name == "sensor_sight" or name.startswith("sensor_sight:")
+    """Whether ``name`` is one of :data:`TEACHERS` (``sensor_sight:<metres>`` / ``sensor_fast_sight:<metres>`` with any
+    number)."""
+    return name in TEACHERS[:-2] or any(name == b or name.startswith(b + ":") for b in ("sensor_sight", "sensor_fast_sight"))
 
 
 class DemoError(ValueError):
@@ -102,15 +104,14 @@ def make_teacher(name: str):
 
         bold = SensorRacer.BOLD if name == "racer_bold" else {}
         return SensorRacer(rangefinder_key="rangefinder_clean", state_key="state_clean", opponents_key="opponents_clean", **bold)
-    if name == "sensor_sight" or name.startswith("sensor_sight:"):
-        from torcsrl.policies import PolicyError, _sight
+    from torcsrl.policies import PolicyError, _sight_teacher
 
-        try:
-            sight = _sight(name)
-        except PolicyError as err:
-            raise DemoError(f"demos.teacher={err}") from None
-        return SensorDriver(decel_per_mu=SensorDriver.GRIP_DECEL_PER_MU, sight_m=sight, rangefinder_key="rangefinder_clean",
-                            state_key="state_clean")
+    try:
+        sight = _sight_teacher(name, rangefinder_key="rangefinder_clean", state_key="state_clean")
+    except PolicyError as err:
+        raise DemoError(f"demos.teacher={err}") from None
+    if sight is not None:
+        return sight
     raise DemoError(f"demos.teacher={name!r} is not known; allowed: {', '.join(TEACHERS)}")
 
 

@@ -108,6 +108,52 @@ def _rollout(seed: int, steps: int = 25):
         env.close()
 
 
+def test_scripted_opponents_give_room_to_a_car_alongside():
+    """TORCS bt's side-collision filter: an expert opponent with a car overlapping it along the track and closer than
+    side_gap_m across keeps side_gap_m between centres on its own side (never turning in across it); with no car
+    alongside, or side_gap_m 0, it tracks its racing line."""
+    def core_with(**tr):
+        env = make_env(track="oval", num_cars=1, seed=0, sensors=("state",),
+                       traffic={"opponents": 1, "driver": {"kind": "expert"}, **tr}, **FAST)
+        env.reset()
+        return env
+
+    env, off = core_with(), core_with(side_gap_m=0)
+    try:
+        for e in (env, off):
+            _place(e.core, 1, 100.0, d=0.0, speed=20.0)  # the opponent on the centre line
+        c = env.core
+        wl, wr = (float(np.asarray(w).reshape(-1)[0]) for w in c.car_tracks[1].width(100.0))
+        _place(c, 0, 102.0, d=2.0, speed=20.0)  # alongside on its left, 2 m across
+        c._locate()
+        lo, hi = c.traffic._side_room(c, 1)
+        assert hi == pytest.approx(float(c.d[0]) - 3.2) and lo == pytest.approx(-wr + 1.2)
+        _place(c, 0, 99.0, d=-2.5, speed=20.0)  # on its right: it stays left of it
+        c._locate()
+        lo, hi = c.traffic._side_room(c, 1)
+        assert lo == pytest.approx(float(c.d[0]) + 3.2) and hi == pytest.approx(wl - 1.2)
+        for s, d in ((115.0, 0.0), (100.0, 3.5), (90.0, 1.0)):  # well ahead, wide enough apart, well behind
+            _place(c, 0, s, d=d, speed=20.0)
+            c._locate()
+            assert c.traffic._side_room(c, 1) is None, (s, d)
+        _place(off.core, 0, 102.0, d=2.0, speed=20.0)
+        off.core._locate()
+        assert off.core.traffic._side_room(off.core, 1) is None  # side_gap_m 0: the old, blind opponents
+        # and it steers that way: the oval's line runs along the right edge here (d -4.8 m); with a car on its right
+        # it steers left of what its line asks
+        for e in (env, off):
+            _place(e.core, 0, 102.0, d=-1.0, speed=20.0)
+            e.core._locate()
+        view = c.traffic.actions(c, (np.zeros(1), np.zeros(1), np.zeros(1)))
+        line = off.core.traffic.actions(off.core, (np.zeros(1), np.zeros(1), np.zeros(1)))
+        assert view[0][1] > line[0][1] + 0.05, (view[0][1], line[0][1])  # steer > 0: left
+    finally:
+        env.close()
+        off.close()
+    with pytest.raises(TrafficError, match="side_gap_m must be a number"):
+        TrafficSpec.from_config({"side_gap_m": -1})
+
+
 def test_same_seed_same_race():
     a, a0, pa = _rollout(3)
     b, b0, pb = _rollout(3)

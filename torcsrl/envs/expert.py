@@ -511,9 +511,11 @@ class ExpertDriver:
         """Track ``(s, d)`` [m] of the car's centre (a point near its last position)."""
         return self._locate(x, y, front=False)
 
-    def act(self, fleet: CarFleet, car: int = 0) -> tuple[float, float, float]:
+    def act(self, fleet: CarFleet, car: int = 0, d_range: tuple[float, float] | None = None) -> tuple[float, float, float]:
         """``(steer, throttle, brake)`` for car ``car`` of ``fleet`` (anything with the fleet's
-        pose, velocity, wheel-spin and ``dt_control`` attributes)."""
+        pose, velocity, wheel-spin and ``dt_control`` attributes). ``d_range`` [m] (lo, hi): the lateral offsets
+        the car may track this step — the line's offset is clipped into it (a race opponent giving room to a car
+        beside it); None: the line."""
         prm = self.params
         x, y = float(fleet.pos[car, 0]), float(fleet.pos[car, 1])
         yaw = float(fleet.yaw[car])
@@ -525,7 +527,10 @@ class ExpertDriver:
         # Steering at the front axle.
         a = prm.cg_to_front_axle
         s_f, d_f = self._locate(x + a * math.cos(yaw), y + a * math.sin(yaw), front=True)
-        err = d_f - self._at(s_f, self._d)
+        d_line = self._at(s_f, self._d)
+        if d_range is not None:
+            d_line = min(max(d_line, d_range[0]), d_range[1])
+        err = d_f - d_line
         kappa = self._at(s_f + 0.15 * speed, self._kappa)
         slip = math.atan2(vy + a * yaw_rate, max(vx, 5.0))  # front axle's velocity vs the body [rad]
         self._slip += (slip - self._slip) * min(dt / self.slip_filter_s, 1.0)

@@ -19,6 +19,12 @@ slow      the expert on its line, capped at ``speed_kmh``
 parked    stands still (brakes on) at a seeded spot of the lap, ``lateral`` of the half-width off the centre
 ========  ==========================================================================================
 
+Scripted opponents (expert, slow) avoid the cars around them as TORCS's robots do, in the simplest form: they lift
+and brake for a car close ahead on their line (:meth:`Traffic._follow_limit`), and with a car alongside they keep
+``side_gap_m`` (3.2 m between centres) from it on their own side instead of turning in across it
+(:meth:`Traffic._side_room`, after ``bt``'s ``filterSColl``; ``side_gap_m: 0`` gives the opponents of before
+2026-11-27, blind to a car beside them).
+
 Starts (``traffic.start``): ``grid`` — TORCS's staggered two-wide grid behind the line (slot k: row k // 2, left
 column for even k), at rest; ``rolling`` — single file at ``rolling.speed_kmh``, ``rolling.gap_m`` apart. The order
 of the cars on the grid is drawn per episode from the env's seed (``order: random``), or the learner takes
@@ -144,6 +150,7 @@ class TrafficSpec:
     safe_headway_s: float = 1.0
     safe_gap_min_m: float = 10.0
     block_range_m: float = 20.0
+    side_gap_m: float = 3.2
 
     @classmethod
     def from_config(cls, cfg: Any) -> TrafficSpec | None:
@@ -192,7 +199,7 @@ class TrafficSpec:
             kw[key] = merged
         if int(kw["grid"]["slots"]) != kw["grid"]["slots"] or kw["grid"]["slots"] < 1:
             raise TrafficError(f"traffic grid.slots must be a positive integer, got {kw['grid']['slots']!r}")
-        for key in ("safe_headway_s", "safe_gap_min_m", "block_range_m"):
+        for key in ("safe_headway_s", "safe_gap_min_m", "block_range_m", "side_gap_m"):
             if key in d:
                 kw[key] = _num(d[key], key, 0.0, 1e4)
         spec = cls(**kw)
@@ -436,7 +443,7 @@ class Traffic:
                 continue
             if view is None:
                 view = _TrackFrameFleet(core.fleet, core.car_origins())
-            steer[car], thr[car], brk[car] = self.drivers[car - N].act(view, car)
+            steer[car], thr[car], brk[car] = self.drivers[car - N].act(view, car, self._side_room(core, car))
             v_lim = self._follow_limit(core, car)
             v = float(core.fleet.vel_body[car, 0])
             if v > v_lim:  # a car close ahead on its line: no throttle, brake to its speed
@@ -460,6 +467,43 @@ class Traffic:
 
     #: Scripted opponents keep ``FOLLOW_MIN_M + FOLLOW_HEADWAY_S x closing speed`` behind a car on their line
     FOLLOW_MIN_M, FOLLOW_HEADWAY_S, FOLLOW_WIDTH_M = 6.0, 1.0, 2.6
+
+    #: A car counts as alongside while the along-track distance between the centres is under the car's length plus
+    #: this margin [m] (the bodies overlap along the track: bt's OPP_SIDE); scripted opponents keep ``side_gap_m``
+    #: between centres from it and stay this far inside the edges [m]
+    SIDE_OVERLAP_M, SIDE_EDGE_M = 0.0, 1.2
+
+    def _side_room(self, core, car: int) -> tuple[float, float] | None:
+        """The lateral offsets [m] a scripted opponent may track: with a car alongside (overlapping along the track,
+        within ``side_gap_m`` across it) it keeps ``side_gap_m`` between centres, staying on its side of that car,
+        instead of turning in across it — the side-collision filter of TORCS's ``bt`` robot (``filterSColl``) in
+        its simplest form. None when no car is alongside (or ``side_gap_m`` is 0): it tracks its line."""
+        gap = self.spec.side_gap_m
+        if gap <= 0.0:
+            return None
+        g = int(self.group[car])
+        tr = core.car_tracks[car]
+        L, s, d = tr.length, core.s, core.d
+        reach = self.params.length + self.SIDE_OVERLAP_M
+        lo, hi = -math.inf, math.inf
+        for o in self.members[g].tolist():
+            if o == car:
+                continue
+            ds = (s[o] - s[car] + 0.5 * L) % L - 0.5 * L
+            dd = float(d[o] - d[car])
+            if abs(ds) > reach or abs(dd) >= gap:
+                continue
+            if dd > 0.0:  # it is on our left: stay right of it
+                hi = min(hi, float(d[o]) - gap)
+            else:
+                lo = max(lo, float(d[o]) + gap)
+        if lo == -math.inf and hi == math.inf:
+            return None
+        wl, wr = (float(np.asarray(w).reshape(-1)[0]) for w in tr.width(float(s[car])))
+        lo, hi = max(lo, -wr + self.SIDE_EDGE_M), min(hi, wl - self.SIDE_EDGE_M)
+        if lo > hi:  # squeezed between two cars (or against the edge): the middle of the room there is
+            lo = hi = 0.5 * (lo + hi)
+        return lo, hi
 
     def _follow_limit(self, core, car: int) -> float:
         """The speed [m/s] a scripted opponent may drive at so as not to run into a car ahead of it on its line

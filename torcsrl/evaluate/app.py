@@ -194,12 +194,13 @@ FLAGS = {"--policy": ("policy", "one"), "--track": ("tracks", "many"), "--tracks
          "--episodes": ("episodes", "one"), "--seed": ("seed", "one"), "--degradation": ("corruption", "one"),
          "--severity": ("severity", "one"), "--max-steps": ("max_steps", "one"), "--start": ("start", "one"),
          "--expert-laps": ("expert_laps", "one"), "--no-plots": ("plots", "false"), "--workers": ("workers", "one"),
-         "--out": ("out", "one"), "--mode": ("mode", "one"), "--opponents": ("opponents", "one"), "--pace": ("pace", "one")}
+         "--out": ("out", "one"), "--mode": ("mode", "one"), "--opponents": ("opponents", "one"), "--pace": ("pace", "one"),
+         "--side-gap": ("side_gap_m", "one")}
 #: Types of the config's values (checked before anything runs).
 TYPES = {"policy": (str,), "tracks": (str, list), "surfaces": (str, list, type(None)), "laps": (int,), "episodes": (int,),
          "seed": (int,), "corruption": (str, type(None)), "severity": (int, type(None)), "max_steps": (int, type(None)),
          "start": (str,), "expert_laps": (int,), "plots": (bool,), "workers": (int,), "out": (str, type(None)),
-         "mode": (str,), "opponents": (int,), "pace": (float, int, list)}
+         "mode": (str,), "opponents": (int,), "pace": (float, int, list), "side_gap_m": (float, int)}
 
 
 def run_config(cfg: Any, out: str | Path | None = None, verbose: bool = True) -> dict[str, Any]:
@@ -230,7 +231,8 @@ def run_config(cfg: Any, out: str | Path | None = None, verbose: bool = True) ->
             raise EvalError("mode=race drives clean sensors; allowed: corruption=null with mode=race")
         return evaluate_race(c["policy"], c["tracks"], c["surfaces"], laps=c["laps"], seed=c["seed"], out_dir=out,
                              episodes=c["episodes"], opponents=c["opponents"], pace=c["pace"], env_kwargs={"start": c["start"]},
-                             max_steps=c["max_steps"], plots=c["plots"], verbose=verbose, workers=c["workers"])
+                             max_steps=c["max_steps"], plots=c["plots"], verbose=verbose, workers=c["workers"],
+                             side_gap_m=c["side_gap_m"])
     return evaluate(c["policy"], c["tracks"], c["surfaces"], laps=c["laps"], seed=c["seed"], out_dir=out, degradation=deg,
                     episodes=c["episodes"], max_steps=c["max_steps"], env_kwargs={"start": c["start"]},
                     expert_laps=c["expert_laps"], plots=c["plots"], workers=c["workers"], verbose=verbose)

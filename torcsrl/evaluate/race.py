@@ -32,11 +32,15 @@ __all__ = ["race_traffic", "run_race_cell", "race_summary", "race_table", "evalu
 
 
 def race_traffic(opponents: int = 3, pace: float | Sequence[float] = 0.85, start: str = "grid",
-                 traffic: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """The ``traffic`` setting of a race: ``opponents`` scripted experts at ``pace`` (or a full mapping)."""
+                 traffic: Mapping[str, Any] | None = None, side_gap_m: float | None = None) -> dict[str, Any]:
+    """The ``traffic`` setting of a race: ``opponents`` scripted experts at ``pace`` (or a full mapping), giving
+    ``side_gap_m`` [m] of room to a car alongside (None: the traffic default, 3.2; 0: blind to it)."""
     if traffic is not None:
         return dict(traffic)
-    return {"opponents": int(opponents), "driver": {"kind": "expert", "pace": pace}, "start": start, "order": "random"}
+    out = {"opponents": int(opponents), "driver": {"kind": "expert", "pace": pace}, "start": start, "order": "random"}
+    if side_gap_m is not None:
+        out["side_gap_m"] = side_gap_m
+    return out
 
 
 def run_race_cell(policy: Policy, track: str, surface: str | None, traffic: Mapping[str, Any], *, laps: int = 5,
@@ -139,7 +143,7 @@ def evaluate_race(policy: str | Policy, tracks: str | Sequence[str], surfaces: A
                   out_dir: str | Path | None = None, *, episodes: int = 1, opponents: int = 3,
                   pace: float | Sequence[float] = 0.85, start: str = "grid", traffic: Mapping[str, Any] | None = None,
                   max_steps: int | None = None, env_kwargs: Mapping[str, Any] | None = None, plots: bool = True,
-                  verbose: bool = True, workers: int = 1) -> dict[str, Any]:
+                  verbose: bool = True, workers: int = 1, side_gap_m: float | None = None) -> dict[str, Any]:
     """Races of ``policy`` against ``opponents`` experts at ``pace`` (or ``traffic``) on ``tracks`` x ``surfaces``;
     returns ``{"config", "policy", "summary", "episodes", "files"}`` and writes race.md / .csv / .json (and a
     top-down plot of the first race per track) to ``out_dir``. ``workers`` > 1: the tracks' races in that many
@@ -151,7 +155,7 @@ def evaluate_race(policy: str | Policy, tracks: str | Sequence[str], surfaces: A
     t0 = time.perf_counter()
     if int(laps) < 1 or int(episodes) < 1:
         raise EvalError(f"laps and episodes must be >= 1, got laps={laps}, episodes={episodes}")
-    tr = race_traffic(opponents, pace, start, traffic)
+    tr = race_traffic(opponents, pace, start, traffic, side_gap_m)
     try:
         TrafficSpec.from_config(tr)
     except TrafficError as err:
