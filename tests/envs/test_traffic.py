@@ -132,7 +132,7 @@ def test_scripted_opponents_give_room_to_a_car_alongside():
         c._locate()
         lo, hi = c.traffic._side_room(c, 1)
         assert lo == pytest.approx(float(c.d[0]) + 3.2) and hi == pytest.approx(wl - 1.2)
-        for s, d in ((115.0, 0.0), (100.0, 3.5), (90.0, 1.0)):  # well ahead, wide enough apart, well behind
+        for s, d in ((115.0, 0.0), (100.0, 3.5), (90.0, 1.0), (96.0, 0.3)):  # well ahead, wide apart, well behind, straight behind
             _place(c, 0, s, d=d, speed=20.0)
             c._locate()
             assert c.traffic._side_room(c, 1) is None, (s, d)
@@ -142,7 +142,7 @@ def test_scripted_opponents_give_room_to_a_car_alongside():
         # and it steers that way: the oval's line runs along the right edge here (d -4.8 m); with a car on its right
         # it steers left of what its line asks
         for e in (env, off):
-            _place(e.core, 0, 102.0, d=-1.0, speed=20.0)
+            _place(e.core, 0, 102.0, d=-1.5, speed=20.0)
             e.core._locate()
         view = c.traffic.actions(c, (np.zeros(1), np.zeros(1), np.zeros(1)))
         line = off.core.traffic.actions(off.core, (np.zeros(1), np.zeros(1), np.zeros(1)))

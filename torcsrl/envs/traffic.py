@@ -469,13 +469,14 @@ class Traffic:
     FOLLOW_MIN_M, FOLLOW_HEADWAY_S, FOLLOW_WIDTH_M = 6.0, 1.0, 2.6
 
     #: A car counts as alongside while the along-track distance between the centres is under the car's length plus
-    #: this margin [m] (the bodies overlap along the track: bt's OPP_SIDE); scripted opponents keep ``side_gap_m``
-    #: between centres from it and stay this far inside the edges [m]
-    SIDE_OVERLAP_M, SIDE_EDGE_M = 0.0, 1.2
+    #: ``SIDE_OVERLAP_M`` (its nose is at least level with the other's rear bumper, less this margin) and it is at
+    #: least ``SIDE_OFFSET_M`` to one side (a car straight behind is a following car, not one alongside); scripted
+    #: opponents keep ``side_gap_m`` between centres from it and stay ``SIDE_EDGE_M`` inside the edges [m]
+    SIDE_OVERLAP_M, SIDE_OFFSET_M, SIDE_EDGE_M = 2.0, 1.0, 1.2
 
     def _side_room(self, core, car: int) -> tuple[float, float] | None:
-        """The lateral offsets [m] a scripted opponent may track: with a car alongside (overlapping along the track,
-        within ``side_gap_m`` across it) it keeps ``side_gap_m`` between centres, staying on its side of that car,
+        """The lateral offsets [m] a scripted opponent may track: with a car alongside (see ``SIDE_OVERLAP_M``,
+        ``SIDE_OFFSET_M``; within ``side_gap_m`` across it) it keeps ``side_gap_m`` between centres, staying on its side of that car,
         instead of turning in across it — the side-collision filter of TORCS's ``bt`` robot (``filterSColl``) in
         its simplest form. None when no car is alongside (or ``side_gap_m`` is 0): it tracks its line."""
         gap = self.spec.side_gap_m
@@ -491,7 +492,7 @@ class Traffic:
                 continue
             ds = (s[o] - s[car] + 0.5 * L) % L - 0.5 * L
             dd = float(d[o] - d[car])
-            if abs(ds) > reach or abs(dd) >= gap:
+            if abs(ds) > reach or not self.SIDE_OFFSET_M <= abs(dd) < gap:
                 continue
             if dd > 0.0:  # it is on our left: stay right of it
                 hi = min(hi, float(d[o]) - gap)
