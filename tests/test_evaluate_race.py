@@ -53,3 +53,16 @@ def test_race_workers_give_the_same_races(tmp_path):
     keys = ("track", "position", "collisions", "steps", "fastest_lap", "env_seed")
     assert [tuple(r[k] for k in keys) for r in one["episodes"]] == [tuple(r[k] for k in keys) for r in two["episodes"]]
     assert [r["track"] for r in two["episodes"]] == ["oval", "hairpins"]
+
+
+def test_race_opponents_side_gap_reaches_the_traffic_and_is_checked():
+    """side_gap_m (evaluate's key, --side-gap) sets how much room the scripted opponents give a car alongside; 0 gives
+    the blind opponents of before; a bad value fails in one line before anything drives."""
+    from torcsrl.envs.traffic import TrafficSpec
+    from torcsrl.evaluate.race import race_traffic
+
+    assert TrafficSpec.from_config(race_traffic(3, 0.85)).side_gap_m == 3.2
+    assert TrafficSpec.from_config(race_traffic(3, 0.85, side_gap_m=0)).side_gap_m == 0.0
+    with pytest.raises(EvalError, match="side_gap_m must be a number") as e:
+        evaluate_race("expert", "oval", laps=1, side_gap_m=-2, plots=False, verbose=False)
+    assert "\n" not in str(e.value)
