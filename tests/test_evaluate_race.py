@@ -25,6 +25,7 @@ def test_race_table_from_a_short_race(tmp_path):
     assert (s["races"], s["finished"], s["wins"], s["mean_position"]) == (1, 1, 1, 1.0)
     md = (tmp_path / "race.md").read_text()
     assert "| " + " | ".join(RACE_COLUMNS) + " |" in md and "| oval | asphalt | 1 | 1/1 | 1/1 | 1.00 | 0.00 |" in md
+    assert "give 3.2 m of room to a car alongside" in md  # which opponents the table was raced against
     assert (tmp_path / "race_oval_asphalt.png").stat().st_size > 0 and (tmp_path / "race_episodes.csv").exists()
 
 

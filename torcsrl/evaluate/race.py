@@ -199,8 +199,10 @@ def evaluate_race(policy: str | Policy, tracks: str | Sequence[str], surfaces: A
               "policy": pol.describe(), "summary": summaries, "episodes": all_rows, "wall_s": time.perf_counter() - t0}
     if out is not None:
         header, body = race_table(summaries)
+        room = TrafficSpec.from_config(tr).side_gap_m
         md = [f"# Races: {pol.name}", "", f"{laps} laps against {tr.get('opponents')} opponent(s) ({tr.get('driver')}), "
-              f"{episodes} race(s) per track, seed {seed}.", "", markdown_table(header, body), "",
+              f"{episodes} race(s) per track, seed {seed}; scripted opponents give {room:g} m of room to a car alongside "
+              f"(side_gap_m{'; 0: blind to it' if room == 0 else ''}).", "", markdown_table(header, body), "",
               "finished: races completed without leaving the track; wins: finished first; mean pos: over finished races; "
               "collisions: contacts begun with another car; damage: summed contact impulse; gap ahead: along-track gap to "
               "the car ahead at the end; lead: margin over the next car (winners) or behind the leader (negative).", ""]
