@@ -23,6 +23,7 @@ import numpy as np
 from torcsrl import metrics
 from torcsrl.evaluate import (PROTOCOL_VERSION, Degradation, EvalError, check_policy_env, parse_degradation, run_cell, validate_grid,
                               write_json)
+from torcsrl.evaluate.app import worker_policy
 from torcsrl.policies import BUILTIN_POLICIES, REFERENCE_POLICY, Policy, load_policy
 from torcsrl.utils.faults import OutputError, ignore_signals_in_worker, stop_pool, writable_folder
 from torcsrl.utils.ray_session import RayError, check_address, ray_session
@@ -160,22 +161,11 @@ class Cell:
         return f"{self.policy} {self.track}/{self.surface} {c}"
 
 
-_POLICY_CACHE: dict[str, Policy] = {}
-
-
 def _worker_init() -> None:
     import torch
 
     torch.set_num_threads(1)
     ignore_signals_in_worker()
-
-
-def _policy(policy: Any) -> Policy:
-    if isinstance(policy, str):
-        if policy not in _POLICY_CACHE:
-            _POLICY_CACHE[policy] = load_policy(policy)
-        return _POLICY_CACHE[policy]
-    return policy
 
 
 def _cell_degradation(cell: Cell) -> Degradation | None:
@@ -194,7 +184,7 @@ def _run_group_task(cells: Sequence[Cell], policy: Any, cfg: dict[str, Any], con
     from torcsrl.evaluate.batched import run_batch
 
     t0 = time.perf_counter()
-    pol = _policy(policy)
+    pol = worker_policy(policy)
     pol.name = cells[0].policy
     c0 = cells[0]
     out = run_batch(pol, c0.track, None if c0.own_surface else c0.surface, [_cell_degradation(c) for c in cells],
@@ -215,7 +205,7 @@ def _run_group_task(cells: Sequence[Cell], policy: Any, cfg: dict[str, Any], con
 def _run_cell_task(cell: Cell, policy: Any, cfg: dict[str, Any], config_hash: str, path: str | None) -> dict[str, Any]:
     """Run one cell (in a worker) and write its JSON atomically (not where ``path`` is None); returns the record."""
     t0 = time.perf_counter()
-    pol = _policy(policy)
+    pol = worker_policy(policy)
     pol.name = cell.policy
     deg = _cell_degradation(cell)
     max_steps = cfg["random_max_steps"] if cell.policy == RANDOM else cfg["max_steps"]
@@ -266,7 +256,7 @@ def _run_on_ray(ray: Any, tasks: Sequence[tuple[list[Cell], Any, list[str]]], cc
             return pspec
         key = pspec if isinstance(pspec, str) else id(pspec)
         if key not in shipped:
-            shipped[key] = ray.put(_policy(pspec))
+            shipped[key] = ray.put(worker_policy(pspec))
         return shipped[key]
 
     pending: dict[Any, tuple[list[Cell], list[str]]] = {}
