@@ -292,6 +292,7 @@ class Traffic:
         #: race group of each car, and each group's cars (learner first)
         self.group = np.concatenate([np.arange(N), np.repeat(np.arange(N), K)]).astype(np.int64)
         self.members = np.array([[g] + [N + g * K + j for j in range(K)] for g in range(N)], dtype=np.int64)  # [N, M]
+        self._members_of = [self.members[g].tolist() for g in self.group.tolist()]  # per car: its group's cars
         self.kinds = [spec.driver_of(j) for j in range(K)]  # per opponent slot j (same in every group)
         self._policies: dict[str, Any] = {}
         for path in spec.policy_specs():
@@ -431,6 +432,7 @@ class Traffic:
         if self.K == 0:
             return steer, thr, brk
         view = None
+        sd: tuple[list, list] | None = None
         pol_rows: dict[str, list[int]] = {}
         for car in range(N, n):
             j = (car - N) % self.K
@@ -443,7 +445,8 @@ class Traffic:
                 continue
             if view is None:
                 view = _TrackFrameFleet(core.fleet, core.car_origins())
-            steer[car], thr[car], brk[car] = self.drivers[car - N].act(view, car, self._side_room(core, car))
+                sd = (core.s.tolist(), core.d.tolist())
+            steer[car], thr[car], brk[car] = self.drivers[car - N].act(view, car, self._side_room(core, car, sd))
             v_lim = self._follow_limit(core, car)
             v = float(core.fleet.vel_body[car, 0])
             if v > v_lim:  # a car close ahead on its line: no throttle, brake to its speed
@@ -474,33 +477,34 @@ class Traffic:
     #: opponents keep ``side_gap_m`` between centres from it and stay ``SIDE_EDGE_M`` inside the edges [m]
     SIDE_OVERLAP_M, SIDE_OFFSET_M, SIDE_EDGE_M = 2.0, 1.0, 1.2
 
-    def _side_room(self, core, car: int) -> tuple[float, float] | None:
+    def _side_room(self, core, car: int, sd: tuple[list, list] | None = None) -> tuple[float, float] | None:
         """The lateral offsets [m] a scripted opponent may track: with a car alongside (see ``SIDE_OVERLAP_M``,
         ``SIDE_OFFSET_M``; within ``side_gap_m`` across it) it keeps ``side_gap_m`` between centres, staying on its side of that car,
         instead of turning in across it — the side-collision filter of TORCS's ``bt`` robot (``filterSColl``) in
-        its simplest form. None when no car is alongside (or ``side_gap_m`` is 0): it tracks its line."""
+        its simplest form. None when no car is alongside (or ``side_gap_m`` is 0): it tracks its line. ``sd``: the
+        cars' track ``(s, d)`` as lists (read once per control step by :meth:`actions`)."""
         gap = self.spec.side_gap_m
         if gap <= 0.0:
             return None
-        g = int(self.group[car])
+        s, d = sd if sd is not None else (core.s.tolist(), core.d.tolist())
         tr = core.car_tracks[car]
-        L, s, d = tr.length, core.s, core.d
+        L = tr.length
         reach = self.params.length + self.SIDE_OVERLAP_M
         lo, hi = -math.inf, math.inf
-        for o in self.members[g].tolist():
+        for o in self._members_of[car]:
             if o == car:
                 continue
             ds = (s[o] - s[car] + 0.5 * L) % L - 0.5 * L
-            dd = float(d[o] - d[car])
+            dd = d[o] - d[car]
             if abs(ds) > reach or not self.SIDE_OFFSET_M <= abs(dd) < gap:
                 continue
             if dd > 0.0:  # it is on our left: stay right of it
-                hi = min(hi, float(d[o]) - gap)
+                hi = min(hi, d[o] - gap)
             else:
-                lo = max(lo, float(d[o]) + gap)
+                lo = max(lo, d[o] + gap)
         if lo == -math.inf and hi == math.inf:
             return None
-        wl, wr = (float(np.asarray(w).reshape(-1)[0]) for w in tr.width(float(s[car])))
+        wl, wr = (float(np.asarray(w).reshape(-1)[0]) for w in tr.width(s[car]))
         lo, hi = max(lo, -wr + self.SIDE_EDGE_M), min(hi, wl - self.SIDE_EDGE_M)
         if lo > hi:  # squeezed between two cars (or against the edge): the middle of the room there is
             lo = hi = 0.5 * (lo + hi)
