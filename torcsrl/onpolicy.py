@@ -51,6 +51,7 @@ from torcsrl.train import (
     make_train_env,
     pipeline_record,
     plain,
+    resume_command,
     validate_all,
 )
 from torcsrl.utils.checkpoint import CheckpointError, checkpoint_path, latest_checkpoint, load_checkpoint, previous_good, prune, save_checkpoint
@@ -168,7 +169,7 @@ def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
               "run_dir": str(run_dir), "checkpoint": str(newest) if newest else None,
               **{k: float(v) for k, v in last.items()}, **eval_metrics}
     print(f"[torcsrl] done: {counters.frames} steps, {counters.episodes} episodes in {wall:.1f} s; outputs in {run_dir}\n"
-          f"[torcsrl] resume: python -m torcsrl.train run_dir={run_dir} checkpoint.resume=latest total_frames=<more>", file=sys.stderr)
+          f"[torcsrl] resume: {resume_command(run_dir, 'total_frames=<more>')}", file=sys.stderr)
     return result
 
 

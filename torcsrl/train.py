@@ -616,6 +616,27 @@ def plain(node: DictConfig) -> SimpleNamespace:
     return conv(OmegaConf.to_container(node, resolve=True))
 
 
+#: Command-line overrides a resume must not repeat (the resume sets its own run_dir / checkpoint.resume).
+_RESUME_DROPS = ("run_dir", "checkpoint.resume", "overwrite", "hydra.")
+
+
+def resume_command(run_dir: Path | str, extra: str = "") -> str:
+    """The shell command that resumes the run in ``run_dir``: this run's own command-line overrides (read from Hydra,
+    so ``experiment=racer seed=1 env.surface=[...]`` come back; without them the resumed config would differ from the
+    checkpoint's) + ``run_dir=<run_dir> checkpoint.resume=latest`` (+ ``extra``, e.g. ``total_frames=<more>``)."""
+    import shlex  # noqa: PLC0415
+
+    try:
+        from hydra.core.hydra_config import HydraConfig  # noqa: PLC0415
+
+        task = list(HydraConfig.get().overrides.task)
+    except ValueError:  # not under @hydra.main: the caller passed a config, not a command line
+        task = []
+    keep = [o for o in task if not o.lstrip("+~").startswith(_RESUME_DROPS)]
+    parts = ["python", "-m", "torcsrl.train", *keep, f"run_dir={run_dir}", "checkpoint.resume=latest"]
+    return " ".join(shlex.quote(p) for p in parts) + (f" {extra}" if extra else "")
+
+
 def _run_dir(cfg: DictConfig) -> Path:
     if cfg.run_dir:
         return Path(cfg.run_dir)
@@ -806,7 +827,7 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     }
     print(f"[torcsrl] done: {counters.frames} steps, {counters.episodes} episodes in {wall:.1f} s; outputs in {run_dir}\n"
           f"[torcsrl] last checkpoint: {result['checkpoint']}\n"
-          f"[torcsrl] resume: python -m torcsrl.train run_dir={run_dir} checkpoint.resume=latest total_frames=<more>", file=sys.stderr)
+          f"[torcsrl] resume: {resume_command(run_dir, 'total_frames=<more>')}", file=sys.stderr)
     if cfg.env.name == "race" and result["checkpoint"]:
         print(f"[torcsrl] evaluate: python -m torcsrl.evaluate --policy {run_dir} --track {_track_arg(cfg.env.track)} --laps 10\n"
               f"[torcsrl]           python -m torcsrl.evaluate --policy {run_dir} --track set:heldout --surface asphalt dirt --laps 10",
@@ -1011,7 +1032,7 @@ def main_entry() -> None:
             sys.exit(cli_error("torcsrl.train", err))
         except KeyboardInterrupt as err:
             last = latest_checkpoint(run_dir / "checkpoints") if run_dir is not None else None
-            resume = (f"; last checkpoint {last}; resume: python -m torcsrl.train run_dir={run_dir} checkpoint.resume=latest"
+            resume = (f"; last checkpoint {last}; resume: {resume_command(run_dir)}"
                       if last else "; no checkpoint was written yet")
             sys.exit(cli_error("torcsrl.train", err, stopped=f"workers stopped{resume}"))
 

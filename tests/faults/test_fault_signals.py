@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import shlex
 import signal
 import subprocess
 import sys
@@ -96,4 +97,9 @@ def test_training_with_collector_workers_stops_with_the_run(tmp_path, sig):
     last = latest_checkpoint(run / "checkpoints")
     if sig == signal.SIGTERM:
         assert str(last) in err and "checkpoint.resume=latest" in err
+        # the resume hint repeats the run's own overrides (a bare run_dir= resume would build another config), not
+        # run_dir / hydra.* twice
+        cmd = shlex.split(err.split("resume: ", 1)[1].splitlines()[0])
+        assert cmd == ["python", "-m", "torcsrl.train", "env=toy", "debug=smoke", "collector.num_workers=2",
+                       "checkpoint.every_frames=200", "total_frames=100000", f"run_dir={run}", "checkpoint.resume=latest"], cmd
     assert load_checkpoint(last)["counters"]["frames"] >= 200
