@@ -273,3 +273,42 @@ def test_pedal_expectile_leans_the_fit_towards_braking():
     with pytest.raises(ValueError, match="weighs action 1 as a pedal .*allowed: 0.5, or env.action_mode=combined"):
         validate(cfg_for("algo=bc", "algo.bc_pedal_expectile=0.2", "+env.action_mode=separate"))
     validate(cfg_for("algo=dagger", "algo.bc_pedal_expectile=0.2"))
+
+
+def test_a_killed_dagger_run_resumes_exactly_after_its_last_round(tmp_path, demo_dir):
+    """A DAgger run stopped after round 1 and resumed (``checkpoint.resume=latest``) ends with the same actor, to the
+    bit, as the run that was never stopped (CPU): the optimiser, the generators and round 1's relabelled rows
+    (``<run_dir>/dagger/round_001``) come back. A missing rows folder, an empty run_dir and a checkpoint written before
+    imitation runs could resume each fail in one line."""
+    import shutil
+
+    from torcsrl.train import train
+    from torcsrl.utils.checkpoint import CheckpointError, latest_checkpoint, load_checkpoint, save_checkpoint
+    from torcsrl.utils.logging import read_csv_metric
+
+    def run(d, rounds, *extra):
+        return train(cfg_for("algo=dagger", f"demos.path={demo_dir}", "algo.bc_steps=20", f"demos.dagger_rounds={rounds}",
+                             "demos.dagger_frames=60", "algo.bc_lr_schedule=cosine", "logger.every_frames=10", f"run_dir={d}", *extra))
+
+    full = run(tmp_path / "full", 2)
+    run(tmp_path / "cut", 1)
+    assert (tmp_path / "cut" / "dagger" / "round_001" / "meta.json").is_file()
+    shutil.copytree(tmp_path / "cut", tmp_path / "norows")
+    shutil.copytree(tmp_path / "cut", tmp_path / "old")
+    resumed = run(tmp_path / "cut", 2, "checkpoint.resume=latest")
+    assert resumed["updates"] == full["updates"] == 60 and resumed["frames"] == full["frames"] == 120
+    a, b = load_checkpoint(full["checkpoint"])["actor"], load_checkpoint(resumed["checkpoint"])["actor"]
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    assert read_csv_metric(tmp_path / "cut", "loss/bc") == read_csv_metric(tmp_path / "full", "loss/bc")
+
+    shutil.rmtree(tmp_path / "norows" / "dagger" / "round_001")
+    with pytest.raises(CheckpointError, match=r"round_001 \(round 1's relabelled rows\) is missing; allowed: .*checkpoint.buffer=true"):
+        run(tmp_path / "norows", 3, "checkpoint.resume=latest")
+    with pytest.raises(CheckpointError, match="holds no checkpoint"):
+        run(tmp_path / "empty", 2, "checkpoint.resume=latest")
+    last = latest_checkpoint(tmp_path / "old" / "checkpoints")
+    ck = load_checkpoint(last)
+    del ck["rng"], ck["optim"]
+    save_checkpoint(last, ck)
+    with pytest.raises(CheckpointError, match=r"holds no optim, rng \(an imitation checkpoint written before .*allowed: "):
+        run(tmp_path / "old", 2, "checkpoint.resume=latest")

@@ -13,8 +13,12 @@ With a curriculum (``curriculum=...``, :mod:`torcsrl.curriculum`; ``algo=dagger`
 stages: the demonstrations are written in the first stage's env, every round drives the current stage's env and is
 validated in its validation envs, and the stage's criterion reads each round's validation (one validation per round);
 a promotion rebuilds the validation envs. ``train/stage`` is logged, ``<run_dir>/curriculum.json`` holds the
-promotions, and every checkpoint the curriculum's state. (An imitation run does not resume mid-run: a killed one
-starts again.)
+promotions, and every checkpoint the curriculum's state.
+
+Resuming (``checkpoint.resume=latest`` or a path) continues after the checkpoint's round: the actor, its optimiser,
+the global generators, the curriculum's stage and the validation envs' state come back, the demonstrations are read
+again from their folder and each earlier DAgger round's relabelled rows from ``<run_dir>/dagger/round_<k>`` (written
+atomically after every round's rollouts when ``checkpoint.buffer`` is on), so a killed run resumes exactly (CPU).
 """
 
 from __future__ import annotations
@@ -42,12 +46,12 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     from torcsrl.demos import EXTRA_KEYS, PRIVILEGED_SLOTS, DemoError, label_rollouts, make_demo_env, mixed_sample
     from torcsrl.objectives.common import ObsUnpacker
     from torcsrl.curriculum import Curriculum
-    from torcsrl.train import (_log_promotion, _run_dir, _write_curriculum, expected_meta, frame_history, init_actor, make_demos,
-                               make_eval_envs, make_train_env, pipeline_record, validate_all)
-    from torcsrl.utils.checkpoint import checkpoint_path, latest_checkpoint, prune, save_checkpoint
-    from torcsrl.utils.logging import log_metrics, make_loggers
+    from torcsrl.train import (_log_promotion, _run_dir, _set_sim_state, _sim_state, _write_curriculum, expected_meta, frame_history,
+                               init_actor, make_demos, make_eval_envs, make_train_env, pipeline_record, validate_all)
+    from torcsrl.utils.checkpoint import CheckpointError, checkpoint_path, latest_checkpoint, prune, save_checkpoint, save_dir_atomically
+    from torcsrl.utils.logging import log_metrics, make_loggers, truncate_csv_after
     from torcsrl.utils.replay import ReplayBuffer
-    from torcsrl.utils.seeding import seed_everything
+    from torcsrl.utils.seeding import rng_state, seed_everything, set_rng_state
     from torcsrl.utils.threads import configure_threads
 
     algo = str(cfg.algo.name)
@@ -65,15 +69,18 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     device = torch.device(str(cfg.device))  # the actor and its batches (device=cuda); envs and buffers stay on the CPU
     try:
         actor = agent.make_actor(cfg.algo, env, obs_keys)
+        meta = {**expected_meta(cfg, env, obs_keys), "pipeline": pipeline_record(cfg, env)}
+        ck = _resume_checkpoint(cfg, ckpt_dir, meta) if cfg.checkpoint.get("resume") else None
         init = cfg.get("init")
-        started = init_actor(str(init.actor), actor, cfg, env, obs_keys) if init is not None and init.get("actor") else None
+        started = init_actor(str(init.actor), actor, cfg, env, obs_keys) if ck is None and init is not None and init.get("actor") else None
         actor = actor.to(device)
         optim = agent.make_optimizers(cfg.algo, actor)
         curriculum = Curriculum.from_config(cfg)  # DAgger rounds follow its stages (none: cfg itself)
+        if ck is not None and ck.get("curriculum") is not None:
+            curriculum.load_state_dict(ck["curriculum"], where=f"checkpoint {ck['path']}")
         demos = make_demos(curriculum.config(cfg, stage=0), env, run_dir)
         if demos is None:
             raise ValueError(f"algo={algo} imitates demonstrations: set demos.frames > 0 (written for this run) or demos.path")
-        meta = {**expected_meta(cfg, env, obs_keys), "pipeline": pipeline_record(cfg, env)}
         eval_envs = make_eval_envs(curriculum.config(cfg))
         if curriculum.active:
             _write_curriculum(curriculum, run_dir)
@@ -97,13 +104,40 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         rounds = int(cfg.demos.dagger_rounds) if algo == "dagger" else 0
         steps_per_fit, batch_size, precision = int(cfg.algo.bc_steps), int(cfg.algo.batch_size), str(cfg.algo.precision)
         lr_schedule = str(cfg.algo.get("bc_lr_schedule", "constant"))
-        updates = frames = 0
+        updates = frames = first = 0
         result: dict[str, Any] = {}
+        new_rows = lambda: ReplayBuffer(int(cfg.demos.dagger_frames), batch_size, obs_keys, extra_keys=EXTRA_KEYS,  # noqa: E731
+                                        history=frame_history(cfg))
+        rows_dir = run_dir / "dagger"
+        if ck is not None:  # continue after the checkpoint's round, as the uninterrupted run would
+            actor.load_state_dict(ck["actor"])
+            for k, o in optim.items():
+                o.load_state_dict(ck["optim"][k])
+            if aux is not None:
+                aux[0].load_state_dict(ck["aux_head"])
+            updates, frames, first = int(ck["counters"]["updates"]), int(ck["counters"]["frames"]), int(ck["counters"]["round"]) + 1
+            for rnd in range(1, first):  # the relabelled rows of the rounds before
+                path = rows_dir / f"round_{rnd:03d}"
+                if not (path / "meta.json").is_file():
+                    raise CheckpointError(f"checkpoint {ck['path']} is after DAgger round {first - 1}, but {path} (round {rnd}'s "
+                                          "relabelled rows) is missing; allowed: a run written with checkpoint.buffer=true, or a fresh run_dir")
+                agg = new_rows()
+                try:
+                    agg.loads(path)
+                except ValueError as err:
+                    raise CheckpointError(str(err)) from None
+                buffers.append(agg)
+            for name, e in eval_envs.items():
+                if name in ck.get("eval_envs", {}):
+                    _set_sim_state(e, ck["eval_envs"][name])
+            truncate_csv_after(run_dir, updates)
+            set_rng_state(ck["rng"])
+            print(f"[torcsrl] resumed from {ck['path']} after DAgger round {first - 1} ({updates} updates)", file=sys.stderr)
         print(f"[torcsrl] imitation ({algo}) on {len(demos)} demonstration frames, {rounds} DAgger rounds; outputs in {run_dir}", file=sys.stderr)
-        for rnd in range(rounds + 1):
+        for rnd in range(first, rounds + 1):
             if rnd > 0:  # DAgger: the learner drives (the expert's noisy action with probability beta), the expert labels
                 beta = float(cfg.demos.dagger_beta) * 0.5 ** (rnd - 1)
-                agg = ReplayBuffer(int(cfg.demos.dagger_frames), batch_size, obs_keys, extra_keys=EXTRA_KEYS, history=frame_history(cfg))
+                agg = new_rows()
                 denv = make_demo_env(curriculum.config(cfg), int(cfg.seed) + 31 * rnd)
                 try:
                     actor.eval()
@@ -113,6 +147,8 @@ def train(cfg: DictConfig) -> dict[str, Any]:
                 finally:
                     denv.close()
                 buffers.append(agg)
+                if cfg.checkpoint.buffer:  # kept for a resume (the demonstrations are in their own folder already)
+                    save_dir_atomically(rows_dir / f"round_{rnd:03d}", lambda d: agg.dumps(d))  # noqa: B023
                 frames += int(cfg.demos.dagger_frames)
                 log_metrics(loggers, {"train/dagger_round": rnd, "train/dagger_beta": beta, "train/episodes": stats["episodes"],
                                       "train/terminated": stats["terminated"]}, updates)
@@ -146,7 +182,8 @@ def train(cfg: DictConfig) -> dict[str, Any]:
             print(f"[torcsrl] {algo} round {rnd}: loss/bc {float(bc):.4f}, eval/laps {ev['eval/laps']:.2f}, eval/reward {ev['eval/reward']:.1f}"
                   + (f", stage {curriculum.name!r}" if curriculum.active else ""), file=sys.stderr)
             payload = {"meta": meta, "actor": actor.state_dict(), "config": OmegaConf.to_yaml(cfg),
-                       "counters": {"updates": updates, "frames": frames, "round": rnd}}
+                       "counters": {"updates": updates, "frames": frames, "round": rnd},
+                       "optim": {k: o.state_dict() for k, o in optim.items()}, **({"aux_head": aux[0].state_dict()} if aux else {})}
             if curriculum.active:
                 promotion = curriculum.observe(ev, frames)
                 if promotion is not None:  # the next round drives the next stage's env; its validation envs now
@@ -155,6 +192,8 @@ def train(cfg: DictConfig) -> dict[str, Any]:
                     eval_envs = make_eval_envs(curriculum.config(cfg))
                     _log_promotion(loggers, promotion, curriculum, run_dir, step=updates)
                 payload["curriculum"] = curriculum.state_dict()
+            payload["eval_envs"] = {name: _sim_state(e) for name, e in eval_envs.items()}
+            payload["rng"] = rng_state()  # last: the state the next round starts from
             save_checkpoint(checkpoint_path(ckpt_dir, updates), payload)
             prune(ckpt_dir, int(cfg.checkpoint.keep))
             result = {"loss/bc": float(bc), **ev, **({"train/stage": curriculum.stage, "train/stage_name": curriculum.name}
@@ -172,3 +211,28 @@ def train(cfg: DictConfig) -> dict[str, Any]:
           f"[torcsrl] evaluate: python -m torcsrl.evaluate --policy {run_dir} --track set:heldout --surface asphalt dirt --laps 10", file=sys.stderr)
     return {"frames": frames, "updates": updates, "episodes": 0, "wall_s": wall, "run_dir": str(run_dir),
             "checkpoint": str(ck) if ck else None, **result}
+
+
+def _resume_checkpoint(cfg: DictConfig, ckpt_dir: Path, meta: dict) -> dict:
+    """The checkpoint an imitation run resumes from (``checkpoint.resume``: ``latest`` or a path), checked against this
+    run's observations; its path under ``"path"``. CheckpointError (one line) when there is none, it is corrupt (naming
+    the previous good one) or it was written before imitation runs could resume."""
+    from torcsrl.utils.checkpoint import CheckpointError, latest_checkpoint, load_checkpoint, previous_good
+
+    latest = cfg.checkpoint.resume == "latest"
+    path = latest_checkpoint(ckpt_dir) if latest else Path(cfg.checkpoint.resume)
+    if path is None:
+        raise CheckpointError(f"checkpoint.resume=latest but {ckpt_dir} holds no checkpoint")
+    try:
+        ck = load_checkpoint(path, expect=meta)
+    except CheckpointError as err:
+        if not latest or "corrupt" not in str(err):
+            raise
+        good = previous_good(ckpt_dir, path)
+        raise CheckpointError(f"{err}; " + (f"the previous good one is {good}: resume with checkpoint.resume={good}" if good
+                                            else f"no older intact checkpoint is left in {ckpt_dir}")) from None
+    missing = [k for k in ("optim", "rng") if k not in ck] + ([] if "round" in ck.get("counters", {}) else ["counters.round"])
+    if missing:
+        raise CheckpointError(f"checkpoint {path} holds no {', '.join(missing)} (an imitation checkpoint written before imitation "
+                              "runs could resume, or another loop's); allowed: a checkpoint of this version's algo=bc / dagger, or a fresh run_dir")
+    return {**ck, "path": path}
