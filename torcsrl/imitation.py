@@ -217,20 +217,9 @@ def _resume_checkpoint(cfg: DictConfig, ckpt_dir: Path, meta: dict) -> dict:
     """The checkpoint an imitation run resumes from (``checkpoint.resume``: ``latest`` or a path), checked against this
     run's observations; its path under ``"path"``. CheckpointError (one line) when there is none, it is corrupt (naming
     the previous good one) or it was written before imitation runs could resume."""
-    from torcsrl.utils.checkpoint import CheckpointError, latest_checkpoint, load_checkpoint, previous_good
+    from torcsrl.utils.checkpoint import CheckpointError, resume_from
 
-    latest = cfg.checkpoint.resume == "latest"
-    path = latest_checkpoint(ckpt_dir) if latest else Path(cfg.checkpoint.resume)
-    if path is None:
-        raise CheckpointError(f"checkpoint.resume=latest but {ckpt_dir} holds no checkpoint")
-    try:
-        ck = load_checkpoint(path, expect=meta)
-    except CheckpointError as err:
-        if not latest or "corrupt" not in str(err):
-            raise
-        good = previous_good(ckpt_dir, path)
-        raise CheckpointError(f"{err}; " + (f"the previous good one is {good}: resume with checkpoint.resume={good}" if good
-                                            else f"no older intact checkpoint is left in {ckpt_dir}")) from None
+    path, ck = resume_from(cfg.checkpoint.resume, ckpt_dir, meta)
     missing = [k for k in ("optim", "rng") if k not in ck] + ([] if "round" in ck.get("counters", {}) else ["counters.round"])
     if missing:
         raise CheckpointError(f"checkpoint {path} holds no {', '.join(missing)} (an imitation checkpoint written before imitation "

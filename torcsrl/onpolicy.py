@@ -54,7 +54,7 @@ from torcsrl.train import (
     resume_command,
     validate_all,
 )
-from torcsrl.utils.checkpoint import CheckpointError, checkpoint_path, latest_checkpoint, load_checkpoint, previous_good, prune, save_checkpoint
+from torcsrl.utils.checkpoint import CheckpointError, checkpoint_path, latest_checkpoint, prune, resume_from, save_checkpoint
 from torcsrl.utils.collector import StepCollector
 from torcsrl.utils.logging import Progress, log_metrics, make_loggers, truncate_csv_after
 from torcsrl.utils.seeding import rng_state, seed_everything, set_rng_state
@@ -288,19 +288,7 @@ def _save(cfg, ckpt_dir, meta, counters, loss, actor, critic, optim, collector, 
 
 
 def _resume(cfg, ckpt_dir, meta, counters, loss, actor, critic, optim, collector, env, eval_envs, threads, run_dir) -> Counters:
-    latest = cfg.checkpoint.resume == "latest"
-    path = latest_checkpoint(ckpt_dir) if latest else Path(cfg.checkpoint.resume)
-    if path is None:
-        raise CheckpointError(f"checkpoint.resume=latest but {ckpt_dir} holds no checkpoint")
-    try:
-        ck = load_checkpoint(path, expect=meta)
-    except CheckpointError as err:
-        if not latest or "corrupt" not in str(err):
-            raise
-        good = previous_good(ckpt_dir, path)
-        hint = (f"; the previous good one is {good}: resume with checkpoint.resume={good}" if good
-                else "; no older intact checkpoint is left in " + str(ckpt_dir))
-        raise CheckpointError(f"{err}{hint}") from None
+    path, ck = resume_from(cfg.checkpoint.resume, ckpt_dir, meta)
     _check_same_env(cfg, ck, path)
     loss.load_state_dict(ck["loss"])
     actor.load_state_dict(ck["actor"])  # in place: the loss holds the same tensors

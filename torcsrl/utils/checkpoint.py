@@ -163,6 +163,25 @@ def _frames(p: Path) -> int:
     return int(m.group(1)) if m else -1
 
 
+def resume_from(resume: str | Path, ckpt_dir: str | Path, expect: dict[str, Any] | None = None) -> tuple[Path, dict[str, Any]]:
+    """The checkpoint a run resumes from (``checkpoint.resume``: ``"latest"`` under ``ckpt_dir``, or a path) and its
+    payload, checked against ``expect``. CheckpointError (one line) when there is none, or when it is corrupt (with
+    ``"latest"``: naming the previous good one to resume from)."""
+    latest = str(resume) == "latest"
+    path = latest_checkpoint(ckpt_dir) if latest else Path(resume)
+    if path is None:
+        raise CheckpointError(f"checkpoint.resume=latest but {ckpt_dir} holds no checkpoint")
+    try:
+        return path, load_checkpoint(path, expect=expect)
+    except CheckpointError as err:
+        if not latest or "corrupt" not in str(err):
+            raise
+        good = previous_good(ckpt_dir, path)
+        hint = (f"; the previous good one is {good}: resume with checkpoint.resume={good}" if good
+                else "; no older intact checkpoint is left in " + str(ckpt_dir))
+        raise CheckpointError(f"{err}{hint}") from None
+
+
 def save_dir_atomically(final: Path, write) -> Path:
     """Call ``write(tmp_dir)`` then rename ``tmp_dir`` to ``final`` (replacing an older ``final``)."""
     final = Path(final)
