@@ -69,7 +69,13 @@ def _proc_name(name: str) -> tuple[int, float | None] | None:
     return (int(seed), d) if 0.0 <= d <= 1.0 else None
 
 
-@lru_cache(maxsize=None)
+#: Tracks kept parsed / generated [-]: a procedural pool (100) and the named tracks fit; bounded, because every env
+#: seed draws its own pool, so a long run (a DAgger env per round) would otherwise keep every track it ever drew
+#: (~4.5 MB each: +0.45 GB a round).
+TRACK_CACHE_SIZE = 160
+
+
+@lru_cache(maxsize=TRACK_CACHE_SIZE)
 def _load_cached(name: str) -> Track:
     if name.startswith("gen-"):
         return generate(int(name[4:]))
