@@ -324,3 +324,19 @@ def test_plot_command_writes_pngs(tmp_path):
     for f in ("h.png", "g.png"):
         data = (tmp_path / f).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
+
+
+def test_the_parsed_track_cache_is_bounded():
+    """Every env seed draws its own procedural pool, so a long run loads many generated tracks: the cache keeps the
+    newest TRACK_CACHE_SIZE, and an evicted track loads again the same."""
+    import numpy as np
+
+    from torcsrl.envs import tracks
+
+    first = tracks.load("gen-40000")
+    for i in range(tracks.TRACK_CACHE_SIZE + 10):
+        tracks.load(f"gen-{40001 + i}")
+    info = tracks._load_cached.cache_info()
+    assert info.currsize == tracks.TRACK_CACHE_SIZE == info.maxsize
+    again = tracks.load("gen-40000")  # evicted, generated again
+    assert again is not first and np.array_equal(again.xy, first.xy)
