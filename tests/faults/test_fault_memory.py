@@ -1,5 +1,6 @@
 """Defect 2: building and closing envs does not grow memory (pybullet 3.2.x keeps the lists passed to
-createCollisionShape; the rangefinder's walls used to be fresh lists per env: ~2 MiB per env)."""
+createCollisionShape; the rangefinder's walls used to be fresh lists per env: ~2 MiB per env, and ~5 MiB per
+track never seen before in the process, which a DAgger run's procedural pools drew by the hundred)."""
 
 from __future__ import annotations
 
@@ -37,3 +38,18 @@ def test_env_create_close_cycles_keep_rss_flat():
     per_env_mib = float(out.stdout.split()[-1])
     # the leak was 2-4.5 MiB per env; allocator noise stays well below 0.5
     assert per_env_mib < 0.5, f"RSS grows {per_env_mib:.2f} MiB per env created and closed"
+
+
+DISTINCT = CODE.replace('e = make_env(track=["hairpins", "oval"])', 'e = make_env(track=[f"gen-{next(SEEDS)}"])').replace(
+    "def cycle():", "import itertools\nfrom torcsrl.envs import tracks\nSEEDS = itertools.count(50000)\ndef cycle():").replace(
+    "    e.close()", "    e.close()\n    tracks._load_cached.cache_clear()  # the parsed-track cache is bounded, and not what this measures")
+
+
+def test_envs_on_tracks_never_seen_before_keep_rss_flat():
+    """Every env on a new generated track: the walls go through reused buffers, so nothing stays behind (the keyed
+    wall cache before it leaked ~5 MiB for each new track)."""
+    assert "gen-" in DISTINCT and "cache_clear" in DISTINCT
+    out = subprocess.run([sys.executable, "-c", DISTINCT], cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    per_env_mib = float(out.stdout.split()[-1])
+    assert per_env_mib < 0.5, f"RSS grows {per_env_mib:.2f} MiB per env on a new track"

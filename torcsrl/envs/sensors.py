@@ -28,7 +28,6 @@ speed into about [−1, 1]. :func:`normalize_transform` builds the TorchRL trans
 
 from __future__ import annotations
 
-import hashlib
 import math
 from operator import itemgetter
 
@@ -112,22 +111,31 @@ def normalize_transform(keys=("rangefinder", "state"), n_beams: int = len(RANGEF
     return Compose(*ts)
 
 
-#: Edge-wall meshes handed to pybullet, kept for the life of the process: pybullet 3.2.x never releases the
-#: Python lists passed as ``vertices=`` / ``indices=`` to ``createCollisionShape`` (a reference leak), so fresh
-#: ``.tolist()`` lists per env grew RSS by ~2 MiB per env created and closed. Handing it the same list objects
-#: for the same walls bounds the cost by the number of distinct walls (tracks x slots x heights) instead.
-_WALL_MESHES: dict[tuple, tuple[list, list]] = {}
-_WALL_MESHES_MAX = 512  # distinct walls kept; beyond it fresh lists are made (and leak, as before)
+#: pybullet 3.2.x never releases the sequences passed as ``vertices=`` / ``indices=`` to ``createCollisionShape``
+#: (nor each vertex's row): a reference leak of ~4 MB per track's walls, which grew a DAgger run by ~0.4 GB for
+#: every env it built (each env seed draws its own procedural pool of 100 tracks). So every mesh goes through the
+#: SAME list objects, refilled in place: the leaked references then pin only these buffers (as large as the
+#: largest mesh so far). pybullet copies the data during the call, so refilling them afterwards is safe.
+_MESH_ROWS: list[list[float]] = []  # one [x, y, z] list per vertex, reused
+_MESH_VERTS: list[list[float]] = []
+_MESH_INDICES: list[int] = []
+
+
+def _mesh_args(verts: np.ndarray, tris: np.ndarray) -> tuple[list, list]:
+    """``(vertices, indices)`` for ``createCollisionShape``: the shared buffers above, refilled with ``verts [V, 3]``
+    [m] and ``tris [3T]``; valid until the next call (hand them straight to pybullet)."""
+    while len(_MESH_ROWS) < len(verts):
+        _MESH_ROWS.append([0.0, 0.0, 0.0])
+    for row, xyz in zip(_MESH_ROWS, verts.tolist()):
+        row[:] = xyz
+    _MESH_VERTS[:] = _MESH_ROWS[: len(verts)]
+    _MESH_INDICES[:] = tris.tolist()
+    return _MESH_VERTS, _MESH_INDICES
 
 
 def _wall_mesh(left: np.ndarray, right: np.ndarray, x_offset_m: float, height_m: float) -> tuple[list, list]:
-    """(vertices, indices) lists of the vertical walls along both track edges, shifted by ``x_offset_m`` [m] and
-    ``height_m`` [m] above and below the beam plane; the same list objects for the same walls (see above)."""
-    key = (hashlib.sha1(np.ascontiguousarray(left).tobytes() + np.ascontiguousarray(right).tobytes()).hexdigest(),
-           len(left), len(right), x_offset_m, height_m)
-    hit = _WALL_MESHES.get(key)
-    if hit is not None:
-        return hit
+    """(vertices, indices) of the vertical walls along both track edges, shifted by ``x_offset_m`` [m] and
+    ``height_m`` [m] above and below the beam plane, in the shared buffers of :func:`_mesh_args`."""
     offset = np.array([x_offset_m, 0.0])
     verts, tris, base = [], [], 0
     for edge in (left, right):
@@ -138,10 +146,7 @@ def _wall_mesh(left: np.ndarray, right: np.ndarray, x_offset_m: float, height_m:
         j = (i + 1) % m
         tris.append(np.concatenate([np.stack([i, j, i + m], 1), np.stack([j, j + m, i + m], 1)]).ravel() + base)
         base += 2 * m
-    mesh = (np.concatenate(verts).tolist(), np.concatenate(tris).astype(int).tolist())
-    if len(_WALL_MESHES) < _WALL_MESHES_MAX:
-        _WALL_MESHES[key] = mesh
-    return mesh
+    return _mesh_args(np.concatenate(verts), np.concatenate(tris).astype(int))
 
 
 class Rangefinder:
