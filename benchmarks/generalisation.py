@@ -16,7 +16,9 @@ on each track is driven once (2 laps) at the same control rate as the driver.
     python benchmarks/generalisation.py --policy RUN_DIR --curve       # held-out completion against training frames -> PNG
 
 ``--screen`` drives the training tracks instead (``set:train`` and ``gen-10001 … gen-10008`` from the training
-seed range): the selection screen a shipped driver is chosen on (``--laps 1``). ``--curve`` drives every checkpoint of each run folder (``--curve-laps`` laps, default 1) on the same tracks
+seed range): the selection screen a shipped driver is chosen on (``--laps 1``). ``--starts K`` drives every trial
+from K starts — the grid, then K-1 seeded random points of the lap (the same for every driver) — so one unlucky
+braking point weighs 1/K of a track instead of the whole track (the counts are then trials, K per track). ``--curve`` drives every checkpoint of each run folder (``--curve-laps`` laps, default 1) on the same tracks
 and plots completion against frames (``--out``/curve.png). ``--train SEEDS`` first trains the recipe
 (``experiment=generalise`` and any ``-- overrides``) once per seed, then benchmarks the runs. Held-out tracks
 are only ever driven here, never trained or selected on.
@@ -38,7 +40,7 @@ sys.path.insert(0, str(ROOT))
 
 
 def _cell(args):
-    spec, track, surface, laps, hz = args
+    spec, track, surface, laps, hz, start = args
     import torch
 
     torch.set_num_threads(1)
@@ -47,9 +49,11 @@ def _cell(args):
 
     pol = load_policy(spec)
     kw = {} if "control_hz" in pol.env_overrides else {"control_hz": hz, "substeps": int(round(200 / hz))}
-    rows, _ = run_cell(pol, track, surface, laps=laps, env_kwargs=kw)
+    if start > 0:  # start k > 0: a random point of the lap, seeded by k (run_cell's common random numbers)
+        kw["start"] = "random"
+    rows, _ = run_cell(pol, track, surface, laps=laps, env_kwargs=kw, seed=start)
     r = rows[0]
-    return {"policy": spec, "track": track, "surface": surface, "success": bool(r["success"]), "laps": int(r["laps"]),
+    return {"policy": spec, "track": track, "surface": surface, "start": start, "success": bool(r["success"]), "laps": int(r["laps"]),
             "fastest_lap": float(r["fastest_lap"]), "flips_per_km": float(r["steer_flips_per_km"]), "termination": r["termination"],
             "mean_speed_kmh": float(r["mean_speed_kmh"])}
 
@@ -60,8 +64,10 @@ def _hz(spec: str) -> float:
     return float(load_policy(spec).env_overrides.get("control_hz", 10.0))
 
 
-def run_grid(specs: list[str], tracks: list[str], surfaces: list[str], laps: int, workers: int, hz: dict[str, float]) -> list[dict]:
-    jobs = [(s, t, u, laps, hz[s]) for s in specs for t in tracks for u in surfaces]
+def run_grid(specs: list[str], tracks: list[str], surfaces: list[str], laps: int, workers: int, hz: dict[str, float],
+             starts: int = 1) -> list[dict]:
+    """One trial per (driver, track, surface, start); start 0 is the grid, start k > 0 a seeded random point."""
+    jobs = [(s, t, u, laps, hz[s], k) for s in specs for t in tracks for u in surfaces for k in range(starts)]
     if workers <= 1:
         return [_cell(j) for j in jobs]
     with ProcessPoolExecutor(workers) as ex:
@@ -146,11 +152,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--curve-laps", type=int, default=1)
     ap.add_argument("--screen", action="store_true",
                     help="selection screen on TRAINING tracks only (set:train + gen-10001..10008) instead of the held-out ones")
+    ap.add_argument("--starts", type=int, default=1,
+                    help="trials per track and surface: the grid, then seeded random points of the lap (the counts are trials)")
     ap.add_argument("--out", default="outputs/benchmarks/generalisation")
     ap.add_argument("--expert-json", default=None,
                     help="reuse the expert's reference laps of an earlier run's generalisation.json (same control rate); "
                          "the (track, surface) pairs it lacks are driven")
     args = ap.parse_args(argv)
+    if args.starts < 1:
+        ap.error(f"--starts {args.starts}: expected a whole number >= 1 (1 = from the grid only)")
 
     from torcsrl.envs import tracks as _tracks
     from torcsrl.envs.tracks.procedural import heldout_names
@@ -198,14 +208,15 @@ def main(argv: list[str] | None = None) -> int:
             ap.error(f"--expert-json {args.expert_json}: its reference laps were driven at {rates} Hz, these drivers run at {exp_specs} Hz")
         expert = {tuple(k.split("|")): float(v) for k, v in old["expert"].items()
                   if k.split("|")[0] in tracks and k.split("|")[1] in args.surfaces}
-    rows = run_grid(specs, tracks, args.surfaces, args.laps, args.workers, hz)
+    rows = run_grid(specs, tracks, args.surfaces, args.laps, args.workers, hz, args.starts)
     for rate in exp_specs:  # the expert at each driver's control rate (2 laps: its fastest is a flying lap)
         todo = [t for t in tracks if any((t, u) not in expert for u in args.surfaces)]
         for r in run_grid(["expert"], todo, args.surfaces, 2, args.workers, {"expert": rate}) if todo else []:
             expert[(r["track"], r["surface"])] = r["fastest_lap"] if r["laps"] >= 2 else math.nan
     summary = summarise(rows, expert, set(generated))
-    print(f"\n{len(rows)} trials of {args.laps} laps in {time.perf_counter() - t0:.0f} s; generated: {generated[0]}..{generated[-1]}"
-          if generated else "")
+    print(f"\n{len(rows)} trials of {args.laps} laps in {time.perf_counter() - t0:.0f} s"
+          + (f"; generated: {generated[0]}..{generated[-1]}" if generated else "")
+          + (f"; {args.starts} starts per track (the grid + {args.starts - 1} random): counts are trials" if args.starts > 1 else ""))
     bundled = "set:train" if args.screen else "set:heldout"
     print(table(summary, bundled))
     out.mkdir(parents=True, exist_ok=True)

@@ -45,3 +45,22 @@ def test_no_bundled_without_generated_tracks_fails_in_one_line(capsys):
         b.main(["--policy", "heuristic", "--no-bundled", "--generated", "0"])
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert "no tracks to drive" in err and "--generated" in err
+
+
+def test_several_starts_are_the_grid_then_seeded_random_points(capsys):
+    """--starts 3: one trial from the grid (the same as --starts 1) and two from seeded points of the lap, the same
+    for every call; 0 starts fails in one line."""
+    import pytest
+
+    b = _bench()
+    one = b.run_grid(["heuristic"], ["oval"], ["asphalt"], 1, 1, {"heuristic": 10.0})
+    three = b.run_grid(["heuristic"], ["oval"], ["asphalt"], 1, 1, {"heuristic": 10.0}, starts=3)
+    assert [r["start"] for r in three] == [0, 1, 2]
+    assert three[0] == one[0]  # start 0 is the grid start every earlier screen drove
+    assert len({r["mean_speed_kmh"] for r in three}) == 3  # three different trials
+    assert b.run_grid(["heuristic"], ["oval"], ["asphalt"], 1, 1, {"heuristic": 10.0}, starts=3)[1:] == three[1:]  # seeded
+    (s,) = b.summarise(three, {("oval", "asphalt"): 40.0}, set())
+    assert s["heldout_total"] == 3  # counted per trial
+    with pytest.raises(SystemExit):
+        b.main(["--policy", "heuristic", "--starts", "0"])
+    assert "--starts 0: expected a whole number >= 1" in capsys.readouterr().err
