@@ -301,6 +301,10 @@ def test_a_killed_dagger_run_resumes_exactly_after_its_last_round(tmp_path, demo
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
     assert read_csv_metric(tmp_path / "cut", "loss/bc") == read_csv_metric(tmp_path / "full", "loss/bc")
 
+    with pytest.raises(CheckpointError, match=r"env.track"):  # the resume command without one of the run's env overrides
+        run(tmp_path / "norows", 2, "checkpoint.resume=latest", "env.track=esses")
+    with pytest.raises(CheckpointError, match=r"relabelled by demos.teacher=.*allowed: the checkpoint's teacher"):
+        run(tmp_path / "norows", 2, "checkpoint.resume=latest", "demos.teacher=sensor_sight")
     shutil.rmtree(tmp_path / "norows" / "dagger" / "round_001")
     with pytest.raises(CheckpointError, match=r"round_001 \(round 1's relabelled rows\) is missing; allowed: .*checkpoint.buffer=true"):
         run(tmp_path / "norows", 3, "checkpoint.resume=latest")

@@ -217,9 +217,15 @@ def _resume_checkpoint(cfg: DictConfig, ckpt_dir: Path, meta: dict) -> dict:
     """The checkpoint an imitation run resumes from (``checkpoint.resume``: ``latest`` or a path), checked against this
     run's observations; its path under ``"path"``. CheckpointError (one line) when there is none, it is corrupt (naming
     the previous good one) or it was written before imitation runs could resume."""
+    from torcsrl.train import _check_same_env
     from torcsrl.utils.checkpoint import CheckpointError, resume_from
 
     path, ck = resume_from(cfg.checkpoint.resume, ckpt_dir, meta)
+    _check_same_env(cfg, ck, path)  # e.g. a resume command without the run's env.surface=[...]
+    saved = OmegaConf.create(ck["config"]) if ck.get("config") else None
+    if saved is not None and "demos" in saved and str(saved.demos.get("teacher")) != str(cfg.demos.get("teacher")):
+        raise CheckpointError(f"checkpoint {path} was relabelled by demos.teacher={saved.demos.get('teacher')}, this config has "
+                              f"{cfg.demos.get('teacher')}; allowed: the checkpoint's teacher, or a fresh run_dir")
     missing = [k for k in ("optim", "rng") if k not in ck] + ([] if "round" in ck.get("counters", {}) else ["counters.round"])
     if missing:
         raise CheckpointError(f"checkpoint {path} holds no {', '.join(missing)} (an imitation checkpoint written before imitation "
