@@ -58,8 +58,8 @@ from torcsrl.utils.checkpoint import (
     checkpoint_path,
     latest_checkpoint,
     load_checkpoint,
-    previous_good,
     prune,
+    resume_from,
     save_checkpoint,
     save_dir_atomically,
 )
@@ -910,24 +910,7 @@ def _save(cfg, ckpt_dir, meta, counters, loss, optim, policy, collector, env, ev
 
 
 def _resume(cfg, ckpt_dir, meta, loss, optim, policy, collector, env, eval_envs, buffer, run_dir) -> Counters:
-    latest = cfg.checkpoint.resume == "latest"
-    path = latest_checkpoint(ckpt_dir) if latest else Path(cfg.checkpoint.resume)
-    if path is None:
-        raise CheckpointError(f"checkpoint.resume=latest but {ckpt_dir} holds no checkpoint")
-    try:
-        ck = load_checkpoint(path, expect=meta)
-        if ck["buffer_dir"]:
-            try:
-                ReplayBuffer.verify(path.parent / ck["buffer_dir"])
-            except ValueError as err:
-                raise CheckpointError(f"checkpoint {path}: its replay buffer cannot be restored ({err})") from None
-    except CheckpointError as err:
-        if not latest or "corrupt" not in str(err) and "cannot be restored" not in str(err):
-            raise
-        good = previous_good(ckpt_dir, path, check=_buffer_intact)
-        hint = (f"; the previous good one is {good}: resume with checkpoint.resume={good}" if good
-                else "; no older intact checkpoint is left in " + str(ckpt_dir))
-        raise CheckpointError(f"{err}{hint}") from None
+    path, ck = resume_from(cfg.checkpoint.resume, ckpt_dir, meta, check=_buffer_intact)  # its replay buffer too
     _check_same_env(cfg, ck, path)
     loss.load_state_dict(ck["loss"])
     for k, o in optim.items():

@@ -163,20 +163,28 @@ def _frames(p: Path) -> int:
     return int(m.group(1)) if m else -1
 
 
-def resume_from(resume: str | Path, ckpt_dir: str | Path, expect: dict[str, Any] | None = None) -> tuple[Path, dict[str, Any]]:
+def resume_from(resume: str | Path, ckpt_dir: str | Path, expect: dict[str, Any] | None = None,
+                check=None) -> tuple[Path, dict[str, Any]]:
     """The checkpoint a run resumes from (``checkpoint.resume``: ``"latest"`` under ``ckpt_dir``, or a path) and its
-    payload, checked against ``expect``. CheckpointError (one line) when there is none, or when it is corrupt (with
-    ``"latest"``: naming the previous good one to resume from)."""
+    payload, checked against ``expect`` and by ``check(path)`` (ValueError: what else it needs is damaged, e.g. its
+    replay buffer dump). CheckpointError (one line) when there is none, or when it is corrupt or ``check`` fails
+    (with ``"latest"``: naming the previous good one to resume from)."""
     latest = str(resume) == "latest"
     path = latest_checkpoint(ckpt_dir) if latest else Path(resume)
     if path is None:
         raise CheckpointError(f"checkpoint.resume=latest but {ckpt_dir} holds no checkpoint")
     try:
-        return path, load_checkpoint(path, expect=expect)
+        ck = load_checkpoint(path, expect=expect)
+        if check is not None:
+            try:
+                check(path)
+            except ValueError as err:
+                raise CheckpointError(f"checkpoint {path}: its replay buffer cannot be restored ({err})") from None
+        return path, ck
     except CheckpointError as err:
-        if not latest or "corrupt" not in str(err):
+        if not latest or "corrupt" not in str(err) and "cannot be restored" not in str(err):
             raise
-        good = previous_good(ckpt_dir, path)
+        good = previous_good(ckpt_dir, path, check=check)
         hint = (f"; the previous good one is {good}: resume with checkpoint.resume={good}" if good
                 else "; no older intact checkpoint is left in " + str(ckpt_dir))
         raise CheckpointError(f"{err}{hint}") from None

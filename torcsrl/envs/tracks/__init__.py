@@ -71,7 +71,7 @@ def _proc_name(name: str) -> tuple[int, float | None] | None:
 
 #: Tracks kept parsed / generated [-]: a procedural pool (100) and the named tracks fit; bounded, because every env
 #: seed draws its own pool, so a long run (a DAgger env per round) would otherwise keep every track it ever drew
-#: (~4.5 MB each: +0.45 GB a round).
+#: (~4 MB each once driven: its projection caches).
 TRACK_CACHE_SIZE = 160
 
 
