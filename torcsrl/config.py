@@ -150,6 +150,7 @@ def problems(cfg: DictConfig | Mapping) -> list[str]:
                        "actor only in-process; allowed: collector.num_workers=0 with a GPU device, or device=cpu")
     _check_critic_obs_keys(c, out)
     _check_frame_stack(c, out)
+    _check_state_history(c, out)
     _check_algo_fit(c, out)
     demos = c.get("demos")
     if isinstance(demos, Mapping) and "teacher" in demos:
@@ -454,6 +455,28 @@ def _check_frame_stack(c: Mapping, out: list[str]) -> None:
     algo = (c.get("algo") or {}).get("name") if isinstance(c.get("algo"), Mapping) else None
     if algo == "ppo":
         out.append(f"frame_stack={k}: algo=ppo is not built for frame stacks yet; allowed: frame_stack=1 with algo=ppo, or an "
+                   "off-policy or imitation algo (ddpg, td3, d4pg, sac, bc, dagger)")
+
+
+def _check_state_history(c: Mapping, out: list[str]) -> None:
+    """``state_history``: an integer 1..100; above 1 the actor must see ``state`` or ``telemetry`` (what is stacked), and
+    not with PPO (its value network sees one reading)."""
+    k = c.get("state_history", 1)
+    if k is None or isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= 100:
+        out.append(f"state_history: expected an integer from 1 to 100 (readings of the on-board state), got {k!r}")
+        return
+    if k == 1:
+        return
+    from torcsrl.transforms import HISTORY_KEYS
+
+    env = c.get("env") if isinstance(c.get("env"), Mapping) else {}
+    keys = list(c.get("obs_keys") or env.get("sensors") or [])
+    if not any(x in HISTORY_KEYS for x in keys):
+        out.append(f"state_history={k} stacks the on-board state ({', '.join(HISTORY_KEYS)}); the actor sees {keys}: allowed: "
+                   "state_history=1, or sensors with state or telemetry")
+    algo = (c.get("algo") or {}).get("name") if isinstance(c.get("algo"), Mapping) else None
+    if algo == "ppo":
+        out.append(f"state_history={k}: algo=ppo is not built for histories yet; allowed: state_history=1 with algo=ppo, or an "
                    "off-policy or imitation algo (ddpg, td3, d4pg, sac, bc, dagger)")
 
 

@@ -233,6 +233,9 @@ def load_demos(path: str | Path, record: dict[str, Any], batch_size: int, n_step
     except (OSError, ValueError):
         raise DemoError(f"{path} is not a demonstration folder (no readable {META} / meta.json; write one with python -m torcsrl.demos)") from None
     theirs = meta["record"]
+    if int(theirs.get("state_history") or 1) != int(record.get("state_history") or 1):  # rows hold the whole history
+        raise DemoError(f"demonstrations {path} were written with state_history={int(theirs.get('state_history') or 1)}; this run has "
+                        f"state_history={int(record.get('state_history') or 1)}; allowed: the folder's, or write them with this run's config")
     mine_frames = frame_layout(record.get("obs_layout"), record.get("frame_stack") or 1)
     their_frames = frame_layout(theirs.get("obs_layout"), theirs.get("frame_stack") or 1)
     if their_frames != mine_frames:  # one frame of each: the stack is a way of sampling the rows

@@ -261,14 +261,24 @@ class CheckpointPolicy(Policy):
         # itself (reset every episode, :meth:`reset`), so it drives the one-frame envs of evaluate/report as trained
         from torcsrl.transforms import IMAGE_KEYS
 
+        from torcsrl.transforms import HISTORY_KEYS
+
         self.frame_stack = int(cfg.get("frame_stack", 1) or 1)
         self._stacked = tuple(k for k in obs_keys if k in IMAGE_KEYS) if self.frame_stack > 1 else ()
+        # state_history > 1: the actor sees the last K readings of its on-board state (scaled, then concatenated)
+        self.state_history = int(cfg.get("state_history", 1) or 1)
+        self._vec_stacked = tuple(k for k in obs_keys if k in HISTORY_KEYS) if self.state_history > 1 else ()
         self._history: dict[str, torch.Tensor] = {}
         actor_shapes = {k: layout[k] for k in obs_keys}
         for k in self._stacked:
             if actor_shapes[k][0] % self.frame_stack:
                 raise PolicyError(f"checkpoint {path}: {k} of {actor_shapes[k]} is not a stack of frame_stack={self.frame_stack} frames")
-        self.obs_shapes = {k: (shp[0] // self.frame_stack, *shp[1:]) if k in self._stacked else shp for k, shp in actor_shapes.items()}
+        for k in self._vec_stacked:
+            if actor_shapes[k][-1] % self.state_history:
+                raise PolicyError(f"checkpoint {path}: {k} of {actor_shapes[k]} is not a history of state_history={self.state_history} readings")
+        self.obs_shapes = {k: (shp[0] // self.frame_stack, *shp[1:]) if k in self._stacked
+                           else (*shp[:-1], shp[-1] // self.state_history) if k in self._vec_stacked else shp
+                           for k, shp in actor_shapes.items()}
         self.action_dim = action_dim
         self.algo = algo
         specs = {}
@@ -338,19 +348,21 @@ class CheckpointPolicy(Policy):
         return TensorDictModule(self._act, in_keys=list(self.obs_keys), out_keys=["action"])
 
     def reset(self, ctx: EpisodeContext | None = None) -> None:
-        """A new episode: a frame-stacking policy forgets its frames (the next stack repeats the first frame)."""
+        """A new episode: a frame-stacking policy forgets its frames and state readings (the next stack repeats the first)."""
         self._history = {}
 
     def _act(self, *obs: torch.Tensor) -> torch.Tensor:
         div = self.obs_divisors
-        if self._stacked:
+        obs = [x / div[k] if k in div else x for k, x in zip(self.obs_keys, obs)]  # scaled, then stacked (as in training)
+        if self._stacked or self._vec_stacked:
             from torcsrl.transforms import stack_frames
 
-            obs = list(obs)
             for i, k in enumerate(self.obs_keys):
                 if k in self._stacked:
                     obs[i] = self._history[k] = stack_frames(self._history.get(k), obs[i], self.frame_stack)
-        return self.actor(*(x / div[k] if k in div else x for k, x in zip(self.obs_keys, obs)))
+                elif k in self._vec_stacked:
+                    obs[i] = self._history[k] = stack_frames(self._history.get(k), obs[i], self.state_history, dim=-1)
+        return self.actor(*obs)
 
     @torch.no_grad()
     def __call__(self, td: TensorDictBase) -> TensorDictBase:

@@ -164,7 +164,24 @@ def observation_transforms(cfg: DictConfig, base: EnvBase, seed: int | None = No
         from torcsrl.transforms import FrameStack
 
         out.append(FrameStack(cfg.frame_stack, [k for k in stacked if k in base.observation_spec.keys()]))
+    history = state_history(cfg)
+    if history:  # the last K readings of the on-board state, scaled (how the car feels the road's grip)
+        from torcsrl.transforms import FrameStack
+
+        keys = [k for k in history if k in base.observation_spec.keys()]
+        if keys:
+            out.append(FrameStack(int(cfg.state_history), keys, dim=-1))
     return out
+
+
+def state_history(cfg: DictConfig) -> dict[str, int]:
+    """``{vector key: K}`` of the keys the actor sees as their last K readings (``state_history`` > 1), else ``{}``."""
+    k = int(cfg.get("state_history", 1) or 1)
+    if k <= 1:
+        return {}
+    from torcsrl.transforms import HISTORY_KEYS
+
+    return {key: k for key in list(cfg.obs_keys or cfg.env.sensors) if key in HISTORY_KEYS}
 
 
 def frame_history(cfg: DictConfig) -> dict[str, int]:
@@ -214,7 +231,8 @@ def pipeline_record(cfg: DictConfig, env: EnvBase) -> dict[str, Any]:
     stack = {k: v for k, v in (stack or {}).items() if v is not None}
     return {"obs_layout": meta["obs_layout"], "action_dim": meta["action_dim"], "normalize": normalize, "scales": scales,
             "degradation": stack, "control_hz": cfg.env.get("control_hz"), "substeps": cfg.env.get("substeps"),
-            "vehicle": cfg.env.get("vehicle"), "action_mode": cfg.env.get("action_mode"), "frame_stack": int(cfg.get("frame_stack", 1) or 1)}
+            "vehicle": cfg.env.get("vehicle"), "action_mode": cfg.env.get("action_mode"), "frame_stack": int(cfg.get("frame_stack", 1) or 1),
+            "state_history": int(cfg.get("state_history", 1) or 1)}
 
 
 def _env_seed(base: EnvBase, default: int) -> int:

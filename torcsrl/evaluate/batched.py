@@ -102,12 +102,13 @@ class _PerCarDraws:
 
 def supports_batch(policy: Policy) -> bool:
     """True when ``policy`` can drive a batch and stay equal to its one-car self: a stateless checkpoint
-    actor (:class:`~torcsrl.nets.DeterministicActor`) on vector observations only."""
+    actor (:class:`~torcsrl.nets.DeterministicActor`) on vector observations only (no ``state_history``: a policy
+    that keeps readings between steps drives one car per env)."""
     from torcsrl.nets import DeterministicActor
     from torcsrl.policies import CheckpointPolicy
 
     return (isinstance(policy, CheckpointPolicy) and type(policy.actor) is DeterministicActor
-            and not policy.actor.encoder.img_keys and type(policy).__call__ is CheckpointPolicy.__call__)
+            and not policy.actor.encoder.img_keys and not policy._vec_stacked and type(policy).__call__ is CheckpointPolicy.__call__)
 
 
 def row_linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:

@@ -75,7 +75,7 @@ from .registry import (
     preset_names,
     sensor_of_key,
 )
-from .frame_stack import IMAGE_KEYS, FrameStack, stack_frames
+from .frame_stack import HISTORY_KEYS, IMAGE_KEYS, FrameStack, stack_frames
 from .state import StateBias, StateDegradation, StateDropout, StateNoise
 from .temporal import FrameDrop, Hold, Latency, ScanDrop
 
@@ -137,6 +137,7 @@ __all__ = [
     "make_preset",
     "make_stack",
     "FrameStack",
+    "HISTORY_KEYS",
     "IMAGE_KEYS",
     "stack_frames",
     "preset_names",

@@ -1,4 +1,5 @@
-"""Frame stacking: the actor sees the last K frames of each image key, stacked along channels.
+"""Frame stacking: the actor sees the last K frames of each image key, stacked along channels — and, with
+``state_history: K``, the last K readings of its on-board state (``state`` / ``telemetry``), concatenated.
 
 ``frame_stack: K`` (top level of the training config) puts :class:`FrameStack` at the END of the
 observation pipeline (:func:`torcsrl.train.observation_transforms`: after every degradation and the
@@ -18,6 +19,12 @@ student of any K, and K does not multiply the bytes per transition.
 
 :class:`torcsrl.policies.CheckpointPolicy` keeps the same history itself (reset per episode), so a
 stacked checkpoint drives the plain one-frame envs of ``evaluate``, ``report`` and the benchmarks.
+
+**State history** (``state_history: K``, :data:`HISTORY_KEYS`): the same transform along the last dim
+(``dim=-1``): ``state`` ``[11]`` becomes ``[11K]``, oldest reading first, after the scaling. One reading
+says little about the road's grip; about a second of them (wheel spin against speed under throttle and
+braking) says it well — the adaptation-module idea of RMA (Kumar et al. 2021), here as a plain input. The
+replay stores such a row whole (a vector is cheap), so demonstrations must be written at the same K.
 """
 
 from __future__ import annotations
@@ -28,10 +35,12 @@ import torch
 from torch.nn.parameter import UninitializedBuffer
 from torchrl.envs import CatFrames
 
-__all__ = ["IMAGE_KEYS", "FrameStack", "stack_frames"]
+__all__ = ["HISTORY_KEYS", "IMAGE_KEYS", "FrameStack", "stack_frames"]
 
 #: Observation keys that are images ``[C, H, W]`` (stackable).
 IMAGE_KEYS = ("pixels", "depth")
+#: Vector keys ``[D]`` whose last K readings ``state_history: K`` gives the actor (on-board state).
+HISTORY_KEYS = ("state", "telemetry")
 
 
 class FrameStack(CatFrames):
@@ -39,13 +48,16 @@ class FrameStack(CatFrames):
 
     Args:
         frames: K, frames per stack (>= 2; one frame needs no transform).
-        keys: image observation keys ``[C, H, W]`` to stack.
+        keys: observation keys to stack: images ``[C, H, W]`` (``dim=-3``) or vectors ``[D]`` (``dim=-1``).
+        dim: the dim the frames are concatenated along: -3 (image channels) or -1 (a vector's readings).
     """
 
-    def __init__(self, frames: int, keys: Sequence[str]):
+    def __init__(self, frames: int, keys: Sequence[str], dim: int = -3):
         if int(frames) < 2:
             raise ValueError(f"FrameStack: frames={frames}; allowed: an integer >= 2 (one frame needs no stack)")
-        super().__init__(N=int(frames), dim=-3, in_keys=list(keys), padding="same")
+        if dim not in (-3, -1):
+            raise ValueError(f"FrameStack: dim={dim}; allowed: -3 (images [C, H, W]) or -1 (vectors [D])")
+        super().__init__(N=int(frames), dim=int(dim), in_keys=list(keys), padding="same")
         self.frames = int(frames)
 
     # exact resume (torcsrl.train._stateful_transforms): the frames held for the next stack
@@ -62,10 +74,11 @@ class FrameStack(CatFrames):
                 self.register_buffer(name, value.clone())
 
 
-def stack_frames(history: torch.Tensor | None, frame: torch.Tensor, frames: int) -> torch.Tensor:
+def stack_frames(history: torch.Tensor | None, frame: torch.Tensor, frames: int, dim: int = -3) -> torch.Tensor:
     """The next stack ``[..., K*C, H, W]`` of a policy that keeps its own history: ``frame`` ``[..., C, H, W]``
-    appended to ``history`` (the previous stack, or None at an episode's start: K copies of ``frame``)."""
-    c = frame.shape[-3]
-    if history is None or history.shape[:-3] != frame.shape[:-3]:
-        return torch.cat([frame] * int(frames), -3)
-    return torch.cat([history[..., c:, :, :], frame], -3)
+    appended to ``history`` (the previous stack, or None at an episode's start: K copies of ``frame``).
+    ``dim=-1``: the same for vectors, ``[..., D]`` -> ``[..., K*D]``."""
+    c = frame.shape[dim]
+    if history is None or history.shape[:dim] != frame.shape[:dim]:
+        return torch.cat([frame] * int(frames), dim)
+    return torch.cat([history.narrow(dim, c, history.shape[dim] - c), frame], dim)

@@ -1,0 +1,103 @@
+"""``state_history: K``: the actor sees the last K readings of its on-board state (torcsrl.transforms.FrameStack, dim=-1),
+in training, in demonstrations and in a checkpoint driving the plain one-reading envs of evaluate / report."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from _compose import compose_config
+from torcsrl.transforms import FrameStack, stack_frames
+
+RACE = ["debug=smoke", "env.track=oval", "env.max_steps=200", "eval.max_steps=30", "threads=1"]
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    torch.set_num_threads(1)
+
+
+def test_stack_frames_along_the_last_dim_keeps_the_newest_reading_last():
+    a, b, c = (torch.full((2, 3), float(v)) for v in (1, 2, 3))
+    h = stack_frames(None, a, 3, dim=-1)
+    assert h.shape == (2, 9) and torch.equal(h, torch.ones(2, 9))  # an episode's start: K copies of the first reading
+    h = stack_frames(h, b, 3, dim=-1)
+    h = stack_frames(h, c, 3, dim=-1)
+    assert h[0].tolist() == [1, 1, 1, 2, 2, 2, 3, 3, 3]
+    assert torch.equal(stack_frames(h, a, 3, dim=-1)[:, :6], h[:, 3:])  # the oldest reading leaves
+    with pytest.raises(ValueError, match="dim=-2"):
+        FrameStack(3, ["state"], dim=-2)
+
+
+def test_the_training_env_and_the_checkpoints_own_history_agree_across_a_reset(tmp_path):
+    """A DAgger student with state_history=4 (demonstrations written at K=4, one relabelling round): its checkpoint reads
+    the one-reading env (obs_shapes: state [11]) and, keeping the history itself (scaled, then stacked), feeds its actor
+    exactly what the training env fed it, across an episode's end."""
+    from torchrl.envs.utils import step_mdp
+
+    from torcsrl.envs import make_env
+    from torcsrl.policies import CheckpointPolicy
+    from torcsrl.train import env_kwargs, make_train_env, train
+    from torcsrl.utils.checkpoint import latest_checkpoint
+
+    cfg = compose_config(*RACE, "algo=dagger", "state_history=4", "demos.frames=120", "algo.bc_steps=10",
+                         "demos.dagger_rounds=1", "demos.dagger_frames=40", f"run_dir={tmp_path / 'run'}")
+    res = train(cfg)
+    assert res["updates"] == 20 and res["frames"] == 40  # round 1 drove 40 frames
+    pol = CheckpointPolicy(latest_checkpoint(tmp_path / "run" / "checkpoints"))
+    assert pol.state_history == 4 and pol.obs_shapes["state"] == (11,) and pol.obs_shapes["rangefinder"] == (19,)
+    assert pol.meta["obs_layout"] == "rangefinder:19,state:44" and pol.meta["pipeline"]["state_history"] == 4
+    from torcsrl.evaluate.batched import supports_batch
+
+    assert not supports_batch(pol)  # it keeps readings between steps: the report drives it one car per env
+    train_env = make_train_env(cfg)
+    raw = make_env(**env_kwargs(cfg.env, seed=int(cfg.seed), device="cpu", max_steps=5))
+    try:
+        pol.check_env(raw)
+        a, b = train_env.reset(), raw.reset()
+        pol.reset()
+        assert a["state"].shape[-1] == 44 and b["state"].shape[-1] == 11
+        for t in range(9):  # across the end of the raw env's 5-step episode: both reset
+            with torch.no_grad():
+                mine, want = pol._act(*(b.get(k) for k in pol.obs_keys)), pol.actor(*(a.get(k) for k in pol.obs_keys))
+            torch.testing.assert_close(mine, want)
+            act = torch.tensor([0.1 * (t % 3 - 1), 0.8])
+            a, b = train_env.step(a.set("action", act)), raw.step(b.set("action", act))
+            if bool(b["next", "done"]):
+                a, b = train_env.reset(), raw.reset()
+                pol.reset()
+            else:
+                a, b = step_mdp(a), step_mdp(b)
+        assert not torch.equal(a["state"][:11], a["state"][-11:])  # the history holds different readings
+    finally:
+        train_env.close()
+        raw.close()
+
+
+def test_demonstrations_of_another_history_are_refused_in_one_line(tmp_path):
+    from torcsrl.demos import DemoError, load_demos, make_demo_env, write_demos
+    from torcsrl.train import pipeline_record
+
+    write_demos(compose_config(*RACE, "state_history=3"), tmp_path / "d", frames=30, seed=1)
+    cfg = compose_config(*RACE)
+    env = make_demo_env(cfg, 0)
+    try:
+        with pytest.raises(DemoError, match=r"written with state_history=3; this run has state_history=1") as err:
+            load_demos(tmp_path / "d", pipeline_record(cfg, env), 8)
+        assert "\n" not in str(err.value)
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize("over, msg", [
+    (["state_history=0"], "state_history: expected an integer from 1 to 100"),
+    (["state_history=4", "env.sensors=[rangefinder]"], r"state_history=4 stacks the on-board state \(state, telemetry\)"),
+    (["state_history=4", "algo=ppo"], "state_history=4: algo=ppo is not built for histories yet"),
+])
+def test_a_history_the_actor_cannot_have_is_one_line(over, msg):
+    import re
+
+    from torcsrl.config import problems
+
+    found = problems(compose_config(*RACE, *over))
+    assert any(re.search(msg, line) for line in found), found
