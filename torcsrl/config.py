@@ -439,44 +439,38 @@ def _check_critic_obs_keys(c: Mapping, out: list[str]) -> None:
 def _check_frame_stack(c: Mapping, out: list[str]) -> None:
     """``frame_stack``: an integer 1..16; above 1 the actor must see an image (pixels or depth), and PPO's value network is
     not stacked (one frame)."""
-    k = c.get("frame_stack", 1)
-    if k is None or isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= 16:
-        out.append(f"frame_stack: expected an integer from 1 to 16 (frames per stack), got {k!r}")
-        return
-    if k == 1:
-        return
     from torcsrl.transforms import IMAGE_KEYS
 
-    env = c.get("env") if isinstance(c.get("env"), Mapping) else {}
-    keys = list(c.get("obs_keys") or env.get("sensors") or [])
-    if not any(x in IMAGE_KEYS for x in keys):
-        out.append(f"frame_stack={k} stacks image observations ({', '.join(IMAGE_KEYS)}); the actor sees {keys}: allowed: "
-                   "frame_stack=1, or sensors with pixels (sensors=camera | pixels | both)")
-    algo = (c.get("algo") or {}).get("name") if isinstance(c.get("algo"), Mapping) else None
-    if algo == "ppo":
-        out.append(f"frame_stack={k}: algo=ppo is not built for frame stacks yet; allowed: frame_stack=1 with algo=ppo, or an "
-                   "off-policy or imitation algo (ddpg, td3, d4pg, sac, bc, dagger)")
+    _check_stack(c, out, "frame_stack", 16, "frames per stack", IMAGE_KEYS, "image observations",
+                 "sensors with pixels (sensors=camera | pixels | both)", "frame stacks")
 
 
 def _check_state_history(c: Mapping, out: list[str]) -> None:
     """``state_history``: an integer 1..100; above 1 the actor must see ``state`` or ``telemetry`` (what is stacked), and
     not with PPO (its value network sees one reading)."""
-    k = c.get("state_history", 1)
-    if k is None or isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= 100:
-        out.append(f"state_history: expected an integer from 1 to 100 (readings of the on-board state), got {k!r}")
+    from torcsrl.transforms import HISTORY_KEYS
+
+    _check_stack(c, out, "state_history", 100, "readings of the on-board state", HISTORY_KEYS, "the on-board state",
+                 "sensors with state or telemetry", "histories")
+
+
+def _check_stack(c: Mapping, out: list[str], name: str, most: int, unit: str, stackable: tuple[str, ...], what: str,
+                 sensors_hint: str, plural: str) -> None:
+    """A stack setting ``name`` (``frame_stack``, ``state_history``): an integer 1..``most``; above 1 the actor must see
+    one of ``stackable`` and the algo must not be PPO."""
+    k = c.get(name, 1)
+    if k is None or isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= most:
+        out.append(f"{name}: expected an integer from 1 to {most} ({unit}), got {k!r}")
         return
     if k == 1:
         return
-    from torcsrl.transforms import HISTORY_KEYS
-
     env = c.get("env") if isinstance(c.get("env"), Mapping) else {}
     keys = list(c.get("obs_keys") or env.get("sensors") or [])
-    if not any(x in HISTORY_KEYS for x in keys):
-        out.append(f"state_history={k} stacks the on-board state ({', '.join(HISTORY_KEYS)}); the actor sees {keys}: allowed: "
-                   "state_history=1, or sensors with state or telemetry")
+    if not any(x in stackable for x in keys):
+        out.append(f"{name}={k} stacks {what} ({', '.join(stackable)}); the actor sees {keys}: allowed: {name}=1, or {sensors_hint}")
     algo = (c.get("algo") or {}).get("name") if isinstance(c.get("algo"), Mapping) else None
     if algo == "ppo":
-        out.append(f"state_history={k}: algo=ppo is not built for histories yet; allowed: state_history=1 with algo=ppo, or an "
+        out.append(f"{name}={k}: algo=ppo is not built for {plural} yet; allowed: {name}=1 with algo=ppo, or an "
                    "off-policy or imitation algo (ddpg, td3, d4pg, sac, bc, dagger)")
 
 
