@@ -12,6 +12,7 @@ from torcsrl.envs import make_env
 from torcsrl.envs.sensors import STATE_SLOTS, TELEMETRY_SLOTS
 from torcsrl.envs.surfaces import SURFACES
 from _compose import compose_config
+from _history import assert_policy_history_matches_training_env
 
 torch.set_num_threads(1)
 
@@ -229,10 +230,8 @@ def test_the_shipped_camera_driver_loads_and_sees_only_the_camera_set():
 def test_a_frame_stacked_student_trains_on_one_frame_demonstrations_and_drives_one_frame_envs(distilled, tmp_path):
     """frame_stack=3: the same demonstration folder (written at one frame) trains it, DAgger included; its checkpoint
     keeps K, reads one-frame envs (check_env) and stacks them itself exactly as the training env did."""
-    from torchrl.envs.utils import step_mdp
-
     from torcsrl.policies import CheckpointPolicy
-    from torcsrl.train import env_kwargs, make_train_env, train
+    from torcsrl.train import train
     from torcsrl.utils.checkpoint import latest_checkpoint
 
     cfg0, _, out0 = distilled
@@ -259,25 +258,7 @@ def test_a_frame_stacked_student_trains_on_one_frame_demonstrations_and_drives_o
     rows, _ = run_cell(pol, "oval", "asphalt", episodes=2, max_steps=6)
     assert len(rows) == 2 and len(resets) == 2 and resets[0] == {} and resets[1]["pixels"].shape == (9, 32, 32)  # episode 1 filled it
     pol.reset = reset
-    train_env = make_train_env(cfg)
-    raw = make_env(**env_kwargs(cfg.env, seed=int(cfg.seed), device="cpu", max_steps=5))
-    try:
-        a, b = train_env.reset(), raw.reset()
-        pol.reset()
-        for t in range(8):  # across the end of the raw env's 5-step episode: both reset
-            with torch.no_grad():
-                mine, want = pol._act(*(b.get(k) for k in pol.obs_keys)), pol.actor(*(a.get(k) for k in pol.obs_keys))
-            torch.testing.assert_close(mine, want)
-            act = torch.tensor([0.0, 0.5])
-            a, b = train_env.step(a.set("action", act)), raw.step(b.set("action", act))
-            if bool(b["next", "done"]):
-                a, b = train_env.reset(), raw.reset()
-                pol.reset()
-            else:
-                a, b = step_mdp(a), step_mdp(b)
-    finally:
-        train_env.close()
-        raw.close()
+    assert_policy_history_matches_training_env(pol, cfg, 8)
 
 
 def test_dagger_continues_from_a_distilled_student(distilled, tmp_path):

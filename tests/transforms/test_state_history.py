@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from _compose import compose_config
+from _history import assert_policy_history_matches_training_env
 from torcsrl.transforms import FrameStack, stack_frames
 
 RACE = ["debug=smoke", "env.track=oval", "env.max_steps=200", "eval.max_steps=30", "threads=1"]
@@ -33,11 +34,8 @@ def test_the_training_env_and_the_checkpoints_own_history_agree_across_a_reset(t
     """A DAgger student with state_history=4 (demonstrations written at K=4, one relabelling round): its checkpoint reads
     the one-reading env (obs_shapes: state [11]) and, keeping the history itself (scaled, then stacked), feeds its actor
     exactly what the training env fed it, across an episode's end."""
-    from torchrl.envs.utils import step_mdp
-
-    from torcsrl.envs import make_env
     from torcsrl.policies import CheckpointPolicy
-    from torcsrl.train import env_kwargs, make_train_env, train
+    from torcsrl.train import train
     from torcsrl.utils.checkpoint import latest_checkpoint
 
     cfg = compose_config(*RACE, "algo=dagger", "state_history=4", "demos.frames=120", "algo.bc_steps=10",
@@ -50,28 +48,8 @@ def test_the_training_env_and_the_checkpoints_own_history_agree_across_a_reset(t
     from torcsrl.evaluate.batched import supports_batch
 
     assert not supports_batch(pol)  # it keeps readings between steps: the report drives it one car per env
-    train_env = make_train_env(cfg)
-    raw = make_env(**env_kwargs(cfg.env, seed=int(cfg.seed), device="cpu", max_steps=5))
-    try:
-        pol.check_env(raw)
-        a, b = train_env.reset(), raw.reset()
-        pol.reset()
-        assert a["state"].shape[-1] == 44 and b["state"].shape[-1] == 11
-        for t in range(9):  # across the end of the raw env's 5-step episode: both reset
-            with torch.no_grad():
-                mine, want = pol._act(*(b.get(k) for k in pol.obs_keys)), pol.actor(*(a.get(k) for k in pol.obs_keys))
-            torch.testing.assert_close(mine, want)
-            act = torch.tensor([0.1 * (t % 3 - 1), 0.8])
-            a, b = train_env.step(a.set("action", act)), raw.step(b.set("action", act))
-            if bool(b["next", "done"]):
-                a, b = train_env.reset(), raw.reset()
-                pol.reset()
-            else:
-                a, b = step_mdp(a), step_mdp(b)
-        assert not torch.equal(a["state"][:11], a["state"][-11:])  # the history holds different readings
-    finally:
-        train_env.close()
-        raw.close()
+    last = assert_policy_history_matches_training_env(pol, cfg, 9, action=lambda t: (0.1 * (t % 3 - 1), 0.8))
+    assert not torch.equal(last["state"][:11], last["state"][-11:])  # the history holds different readings
 
 
 def test_demonstrations_of_another_history_are_refused_in_one_line(tmp_path):
