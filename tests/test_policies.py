@@ -9,6 +9,7 @@ import torch
 from torcsrl.envs import make_env
 from torcsrl.policies import (
     REFERENCE_CAMERA_POLICY,
+    REFERENCE_RACER_POLICY,
     REFERENCE_POLICY,
     REFERENCE_RL_POLICY,
     CheckpointPolicy,
@@ -67,6 +68,15 @@ def test_an_ensemble_file_drives_as_its_spec(tmp_path, states):
     with pytest.raises(PolicyError, match="is an ensemble of 2 students") as err:  # one actor expected
         CheckpointPolicy(out)
     assert "\n" not in str(err.value)
+    from torcsrl.policies import export_member
+
+    one = CheckpointPolicy(export_member(out, 1, tmp_path / "b.pt"))  # a member alone: B's actor, to the bit
+    assert all(torch.equal(v, CheckpointPolicy(B).actor.state_dict()[k]) for k, v in one.actor.state_dict().items())
+    for bad, msg in ((2, "has members 0..1; got 2"), (-1, "has members 0..1; got -1")):
+        with pytest.raises(PolicyError, match=msg):
+            export_member(out, bad, tmp_path / "x.pt")
+    with pytest.raises(PolicyError, match="is not an ensemble file"):
+        export_member(A, 0, tmp_path / "x.pt")
     with pytest.raises(PolicyError, match="itself an ensemble"):
         load_policy(f"{out}+{A}")
     env = make_env(track="oval", sensors=pol.env_overrides["sensors"], control_hz=10, substeps=20)
@@ -83,7 +93,8 @@ def test_an_ensemble_file_drives_as_its_spec(tmp_path, states):
 def test_ensemble_bad_input_fails_in_one_line(tmp_path):
     cases = {
         f"{A}+{B}@loudest": "reduce='loudest' is not known; allowed: mean, median, cautious",
-        f"{A}+{REFERENCE_CAMERA_POLICY}": "must read the same observations",
+        f"{A}+{REFERENCE_RACER_POLICY}": "must read the same observations",  # rangefinder + state against + opponents
+        f"{A}+{REFERENCE_CAMERA_POLICY}": "is itself an ensemble",  # the shipped camera driver is a 4-seed ensemble
         f"{A}+{tmp_path / 'nothing.pt'}": "neither a checkpoint file that exists",
     }
     for spec, msg in cases.items():

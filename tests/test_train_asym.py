@@ -150,6 +150,12 @@ def test_init_actor_refuses_what_does_not_fit(tmp_path):
         with pytest.raises(ValueError) as e:
             build(f"init.actor={tmp_path / 'empty'}")
         assert "holds no checkpoint" in _one_line(e)
+        from torcsrl.policies import export_ensemble
+
+        ens = export_ensemble([rangefinder_driver, rangefinder_driver], tmp_path / "ens.pt")
+        with pytest.raises(ValueError) as e:  # an ensemble file is several actors
+            build(f"init.actor={ens}")
+        assert "an ensemble of 2 students, not one actor" in _one_line(e) and "torcsrl.policies member" in str(e.value)
         src = train(compose_cfg(*SMALL, f"run_dir={tmp_path / 'src'}", "total_frames=150"))
         with pytest.raises(ValueError) as e:  # same observations, another network shape
             build(f"init.actor={src['checkpoint']}", "algo.actor_hidden=[16,16]")

@@ -172,6 +172,10 @@ class Policy:
     def reset(self, ctx: EpisodeContext) -> None:
         """Called at the start of every episode, after the env reset."""
 
+    def forget_rows(self, rows: list[int]) -> None:
+        """Rows ``rows`` of the batch this policy drives start a new episode (a partial reset): a policy that keeps
+        readings between steps forgets theirs. Stateless policies ignore it."""
+
     def __call__(self, td: TensorDictBase) -> TensorDictBase:
         raise NotImplementedError
 
@@ -269,6 +273,7 @@ class CheckpointPolicy(Policy):
         self.state_history = int(cfg.get("state_history", 1) or 1)
         self._vec_stacked = tuple(k for k in obs_keys if k in HISTORY_KEYS) if self.state_history > 1 else ()
         self._history: dict[str, torch.Tensor] = {}
+        self._fresh: list[int] = []  # rows of the batch that restarted (forget_rows) since the last step
         actor_shapes = {k: layout[k] for k in obs_keys}
         for k in self._stacked:
             if actor_shapes[k][0] % self.frame_stack:
@@ -350,6 +355,12 @@ class CheckpointPolicy(Policy):
     def reset(self, ctx: EpisodeContext | None = None) -> None:
         """A new episode: a frame-stacking policy forgets its frames and state readings (the next stack repeats the first)."""
         self._history = {}
+        self._fresh = []
+
+    def forget_rows(self, rows: list[int]) -> None:
+        """Rows of the batch restart (a partial reset, e.g. one race group of opponents): at the next step their stacks
+        repeat their first frame / reading, as the training env's ``CatFrames`` does for a partial reset."""
+        self._fresh = sorted(set(self._fresh) | {int(r) for r in rows})
 
     def _act(self, *obs: torch.Tensor) -> torch.Tensor:
         div = self.obs_divisors
@@ -357,11 +368,15 @@ class CheckpointPolicy(Policy):
         if self._stacked or self._vec_stacked:
             from torcsrl.transforms import stack_frames
 
+            fresh, self._fresh = self._fresh, []
             for i, k in enumerate(self.obs_keys):
-                if k in self._stacked:
-                    obs[i] = self._history[k] = stack_frames(self._history.get(k), obs[i], self.frame_stack)
-                elif k in self._vec_stacked:
-                    obs[i] = self._history[k] = stack_frames(self._history.get(k), obs[i], self.state_history, dim=-1)
+                if k not in self._stacked and k not in self._vec_stacked:
+                    continue
+                kk, dim = (self.frame_stack, -3) if k in self._stacked else (self.state_history, -1)
+                stack = stack_frames(self._history.get(k), obs[i], kk, dim=dim)
+                if fresh and self._history.get(k) is not None:  # rows that restarted: K copies of their first frame
+                    stack[fresh] = stack_frames(None, obs[i][fresh], kk, dim=dim)
+                obs[i] = self._history[k] = stack
         return self.actor(*obs)
 
     @torch.no_grad()
@@ -422,6 +437,10 @@ class EnsemblePolicy(Policy):
         for m in self.members:
             m.reset(ctx)
 
+    def forget_rows(self, rows: list[int]) -> None:
+        for m in self.members:
+            m.forget_rows(rows)
+
     @torch.no_grad()
     def __call__(self, td: TensorDictBase) -> TensorDictBase:
         acts = torch.stack([m._act(*(td.get(k) for k in m.obs_keys)) for m in self.members])  # [members, ..., A]
@@ -458,6 +477,25 @@ def export_ensemble(checkpoints: list[str | Path], out: str | Path, reduce: str 
     meta = {"kind": "ensemble", "reduce": ens.reduce, "sources": [Path(p.path).name for p in pols],
             "algo": first.get("algo"), "obs_layout": first.get("obs_layout"), "action_dim": first.get("action_dim")}
     return save_checkpoint(out, {"meta": meta, "members": members})
+
+
+def export_member(ensemble: str | Path, index: int, out: str | Path) -> Path:
+    """Write member ``index`` of an ensemble file (:func:`export_ensemble`) as a one-actor policy file: what
+    ``init.actor`` and single-checkpoint tools (``benchmarks/teacher_gap.py``) take. :class:`PolicyError` (one line)
+    when ``ensemble`` is not an ensemble file or ``index`` is out of range."""
+    from torcsrl.utils.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+
+    try:
+        ck = load_checkpoint(ensemble)
+    except CheckpointError as err:
+        raise PolicyError(str(err)) from None
+    members = ck.get("members") if ck.get("meta", {}).get("kind") == "ensemble" else None
+    if not members:
+        raise PolicyError(f"{ensemble} is not an ensemble file (python -m torcsrl.policies ensemble writes them)")
+    if not 0 <= int(index) < len(members):
+        raise PolicyError(f"{ensemble} has members 0..{len(members) - 1}; got {index}")
+    m = members[int(index)]
+    return save_checkpoint(out, {"meta": dict(m["meta"]), "actor": m["actor"], "config": m["config"]})
 
 
 def _checkpoint_file(s: str | Path, name: str | None = None) -> Policy:
@@ -1054,6 +1092,10 @@ def main(argv: list[str] | None = None) -> int:
     en.add_argument("out")
     en.add_argument("checkpoints", nargs="+")
     en.add_argument("--reduce", default="mean", choices=EnsemblePolicy.REDUCE)
+    mb = sub.add_parser("member", help="write one member of an ensemble file as a one-actor policy file (e.g. for init.actor)")
+    mb.add_argument("ensemble")
+    mb.add_argument("index", type=int)
+    mb.add_argument("out")
     i = sub.add_parser("info", help="print what a policy spec loads")
     i.add_argument("spec")
     args = parser.parse_args(argv)
@@ -1064,6 +1106,9 @@ def main(argv: list[str] | None = None) -> int:
         elif args.cmd == "ensemble":
             out = export_ensemble(args.checkpoints, args.out, args.reduce)
             print(f"wrote {out} ({out.stat().st_size / 1024:.0f} KiB): {len(args.checkpoints)} members, reduce={args.reduce}")
+        elif args.cmd == "member":
+            out = export_member(args.ensemble, args.index, args.out)
+            print(f"wrote {out} ({out.stat().st_size / 1024:.0f} KiB): member {args.index} of {args.ensemble}")
         else:
             print(load_policy(args.spec).describe())
     except PolicyError as err:

@@ -397,6 +397,9 @@ def init_actor(spec: str, actor: torch.nn.Module, cfg: DictConfig, env: EnvBase,
         raise ValueError(f"init.actor={spec}: no such file or folder; allowed: a checkpoint file, a policy file, or a run folder")
     ck = load_checkpoint(path)
     meta, want = ck["meta"], expected_meta(cfg, env, obs_keys)
+    if meta.get("kind") == "ensemble":
+        raise ValueError(f"init.actor={path}: an ensemble of {len(ck.get('members', []))} students, not one actor; allowed: one of its "
+                         f"members (python -m torcsrl.policies member {path} <index> <out.pt>), a checkpoint, or a run folder")
     if meta.get("obs_layout") != want["obs_layout"] or meta.get("action_dim") != want["action_dim"]:
         raise ValueError(f"init.actor={path}: its actor sees {meta.get('obs_layout')!r} with {meta.get('action_dim')} action dims; "
                          f"this run's actor sees {want['obs_layout']!r} with {want['action_dim']}; allowed: a checkpoint of the "

@@ -195,3 +195,32 @@ def test_bad_traffic_fails_in_one_line():
         _load_opponent_policy("reference_camera")
     with pytest.raises(ValueError, match="traffic: unknown keys"):
         RaceCore(track="oval", traffic={"opponent": 3})
+
+
+def test_policy_opponents_forget_their_readings_when_their_race_restarts(tmp_path):
+    """Opponents of kind policy: a frozen checkpoint with a state history (state_history=3) acts for both opponent cars
+    as one batch; when the race restarts its stacks restart too (K copies of the new first reading), not the last
+    race's readings."""
+    from _compose import compose_config
+
+    from torcsrl.train import train
+    from torcsrl.utils.checkpoint import latest_checkpoint
+
+    train(compose_config("debug=smoke", "env.track=oval", "eval.max_steps=20", "threads=1", "algo=dagger", "state_history=3",
+                         "demos.frames=80", "algo.bc_steps=5", "demos.dagger_rounds=0", f"run_dir={tmp_path / 'r'}"))
+    ck = str(latest_checkpoint(tmp_path / "r" / "checkpoints"))
+    env = make_env(track="oval", num_cars=1, seed=3, sensors=("rangefinder", "state", "opponents"), max_steps=4,
+                   traffic={"opponents": 2, "driver": {"kind": "policy", "policy": ck}}, **FAST)
+    try:
+        pol = env.core.traffic._policies[ck]
+        td = env.reset()
+        for _ in range(4):
+            td = env.step(td.set("action", torch.tensor([0.0, 0.8])))["next"]
+        hist = pol._history["state"]
+        assert hist.shape == (2, 33) and not torch.equal(hist[:, :11], hist[:, -11:])  # 2 cars, 3 different readings
+        env.reset()
+        env.step(td.set("action", torch.tensor([0.0, 0.8])))
+        new = pol._history["state"]
+        assert torch.equal(new[:, :11], new[:, 11:22])  # the restart's first reading, repeated (then the newest)
+    finally:
+        env.close()

@@ -295,6 +295,7 @@ class Traffic:
         self._members_of = [self.members[g].tolist() for g in self.group.tolist()]  # per car: its group's cars
         self.kinds = [spec.driver_of(j) for j in range(K)]  # per opponent slot j (same in every group)
         self._policies: dict[str, Any] = {}
+        self._restarted: set[int] = set()  # policy-driven opponent cars whose episode restarted since their last step
         for path in spec.policy_specs():
             self._policies[path] = _load_opponent_policy(path)
         self._base_drivers: dict[tuple, Any] = {}
@@ -405,6 +406,8 @@ class Traffic:
                     speed[j + 1] = min(speed[j + 1], float(np.interp(s_start[j + 1], drv.line.track_s, drv._v)))
             else:
                 self.drivers[car] = None
+                if ds.kind == "policy":  # a policy that keeps readings forgets this car's at its next step
+                    self._restarted.add(self.N + car)
         for key in ("race_pos", "start_pos"):
             getattr(self, key)[self.members[g]] = 1 + np.argsort(np.argsort(back, kind="stable"), kind="stable")
         return s_start, dd, speed, back
@@ -457,6 +460,10 @@ class Traffic:
             from tensordict import TensorDict
 
             pol = self._policies[path]
+            fresh = [i for i, c in enumerate(rows) if c in self._restarted]
+            if fresh:
+                pol.forget_rows(fresh)
+                self._restarted.difference_update(rows[i] for i in fresh)
             obs = {k: torch.from_numpy(np.ascontiguousarray(core._obs_all[k][rows])) for k in pol.obs_keys}
             td = pol(TensorDict(obs, batch_size=[len(rows)]))
             a = td.get("action").numpy().astype(np.float64)
