@@ -1,0 +1,38 @@
+"""benchmarks/grip_probe.py: how well a history of the on-board state tells the road's friction (training tracks only)."""
+
+from __future__ import annotations
+
+import importlib.util
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _bench():
+    spec = importlib.util.spec_from_file_location("grip_probe_bench", ROOT / "benchmarks" / "grip_probe.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_history_rows_hold_the_last_readings_oldest_first():
+    x = np.arange(8, dtype=np.float32).reshape(4, 2)
+    h = _bench().history(x, 3)
+    assert h.shape == (4, 6)
+    assert h[0].tolist() == [0, 1, 0, 1, 0, 1]  # the first reading repeated before the start
+    assert h[3].tolist() == [2, 3, 4, 5, 6, 7]
+
+
+def test_a_short_probe_prints_its_table_on_every_surface(capsys):
+    b = _bench()
+    assert b.main(["--steps", "25", "--history", "1", "3", "--fit-steps", "30"]) == 0
+    out = capsys.readouterr().out
+    assert "52 (track, surface) pairs" in out and "tested on gen-10005..8" in out
+    rows = re.findall(r"^\| (\d+) \| ([0-9.]+) \|", out, flags=re.M)
+    assert [r[0] for r in rows] == ["1", "3"] and all(0.0 < float(r[1]) < 1.0 for r in rows)
+    with pytest.raises(SystemExit):
+        b.main(["--history", "0"])
