@@ -2,21 +2,16 @@
 
 from __future__ import annotations
 
-import importlib.util
 import re
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[2]
+from _bench import load_benchmark
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("grip_probe_bench", ROOT / "benchmarks" / "grip_probe.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("grip_probe")
 
 
 def test_history_rows_hold_the_last_readings_oldest_first():

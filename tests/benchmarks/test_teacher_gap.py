@@ -2,19 +2,17 @@
 
 from __future__ import annotations
 
-import importlib.util
 import re
 from pathlib import Path
+
+from _bench import load_benchmark
 
 ROOT = Path(__file__).resolve().parents[2]
 STUDENT = ROOT / "torcsrl" / "assets" / "reference_dagger.pt"  # the sensor driver's rangefinder student
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("teacher_gap_bench", ROOT / "benchmarks" / "teacher_gap.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("teacher_gap")
 
 
 def test_the_student_scored_on_its_teachers_own_states_and_on_its_own(capsys):
