@@ -40,7 +40,9 @@ def drive(spec: str, steps: int) -> list[tuple[str, str, np.ndarray]]:
     names = list(T.resolve("set:train")) + [f"gen-{10000 + i}" for i in range(1, 9)]
     for ti, track in enumerate(names):
         for si, surface in enumerate(SURFACES):
-            env = make_env(track=track, surface=surface, start="random", seed=100 * ti + si, max_steps=steps, **pol.env_overrides)
+            kw = dict(pol.env_overrides)
+            kw["sensors"] = tuple(dict.fromkeys([*kw.get("sensors", ("rangefinder",)), "state"]))  # the probe reads the state
+            env = make_env(track=track, surface=surface, start="random", seed=100 * ti + si, max_steps=steps, **kw)
             try:
                 td = env.reset()
                 pol.reset(EpisodeContext(track=env.core.car_tracks[0], seed=ti, dt=float(env.core.dt)))
@@ -101,6 +103,12 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.steps < 2 or any(h < 1 for h in args.history):
         ap.error("--steps must be >= 2 and every --history >= 1")
+    from torcsrl.policies import PolicyError, load_policy
+
+    try:
+        load_policy(args.policy)
+    except PolicyError as err:
+        ap.error(f"--policy: {err}")
     torch.set_num_threads(1)
     data = drive(args.policy, args.steps)
     print(f"\n{args.policy}: {sum(len(r) for *_, r in data)} steps on {len(data)} (track, surface) pairs; "

@@ -29,5 +29,7 @@ def test_a_short_probe_prints_its_table_on_every_surface(capsys):
     assert "52 (track, surface) pairs" in out and "tested on gen-10005..8" in out
     rows = re.findall(r"^\| (\d+) \| ([0-9.]+) \|", out, flags=re.M)
     assert [r[0] for r in rows] == ["1", "3"] and all(0.0 < float(r[1]) < 1.0 for r in rows)
-    with pytest.raises(SystemExit):
-        b.main(["--history", "0"])
+    for bad in (["--history", "0"], ["--policy", "nope"]):
+        with pytest.raises(SystemExit):
+            b.main(bad)
+    assert "--policy: policy 'nope' is neither a checkpoint file" in capsys.readouterr().err
