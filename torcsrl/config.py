@@ -80,6 +80,7 @@ RANGES: dict[str, tuple[float | None, float | None, str]] = {
     "algo.bc_steps": (1, None, "closed"),
     "algo.aux_privileged": (0.0, None, "closed"),
     "algo.bc_pedal_expectile": (0.0, 1.0, "both-open"),
+    "algo.grip_estimate": (0.0, None, "closed"),
     "algo.smooth.temporal": (0.0, None, "closed"),
     "algo.smooth.spatial": (0.0, None, "closed"),
     "algo.smooth.spatial_sigma": (0.0, None, "closed"),
@@ -502,6 +503,13 @@ def _check_algo_fit(c: Mapping, out: list[str]) -> None:
         elif env.get("action_mode") not in (None, "combined"):
             out.append(f"algo.bc_pedal_expectile={tau} weighs action 1 as a pedal (< 0 = brake), which env.action_mode="
                        f"{env.get('action_mode')} does not have; allowed: 0.5, or env.action_mode=combined")
+    grip = algo.get("grip_estimate", 0.0)
+    if _is_num(grip) and grip > 0 and name not in ("bc", "dagger"):
+        out.append(f"algo.grip_estimate={grip}: the grip head learns from the demonstrations' privileged mu, which only algo=bc / "
+                   f"dagger fit (algo={name}); allowed: 0, or algo=bc / dagger")
+    hid = algo.get("grip_hidden", [64])
+    if not (isinstance(hid, Sequence) and not isinstance(hid, str) and all(_is_num(h) and float(h).is_integer() and h >= 1 for h in hid)):
+        out.append(f"algo.grip_hidden={hid!r}: expected a list of hidden layer sizes >= 1, e.g. [64] (or [] for a linear head)")
     if name not in ("sac", "ppo"):
         return
     why = f"algo={name} explores by sampling its own policy"

@@ -94,6 +94,10 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         buffers = [demos]
         aux_w = float(cfg.algo.get("aux_privileged", 0.0))
         aux = None
+        grip_w = float(cfg.algo.get("grip_estimate", 0.0) or 0.0)
+        if grip_w > 0 and "privileged" not in demos.extra_keys:
+            raise DemoError(f"algo.grip_estimate={grip_w} regresses the rows' privileged mu, which the demonstrations hold no column of "
+                            f"(extra keys {demos.extra_keys}); allowed: demonstrations written by this version, or grip_estimate=0")
         if aux_w > 0:  # auxiliary task: the encoder's features regress the teacher's privileged view (PRIVILEGED_SLOTS)
             if "privileged" not in demos.extra_keys:
                 raise DemoError(f"algo.aux_privileged={aux_w} regresses the rows' privileged view, which the demonstrations hold no "

@@ -36,8 +36,10 @@ def encoder(cfg: Any, env: EnvBase, obs_keys: list[str], obs_norm: bool = False)
 
 
 def actor(cfg: Any, env: EnvBase, obs_keys: list[str]) -> DeterministicActor:
+    """mu(s); with ``algo.grip_estimate > 0`` (imitation only) it carries a grip head of ``algo.grip_hidden``."""
     low, high = action_bounds(env)
-    return DeterministicActor(encoder(cfg, env, obs_keys), low, high, tuple(cfg.actor_hidden))
+    grip = tuple(cfg.get("grip_hidden", (64,))) if float(cfg.get("grip_estimate", 0.0) or 0.0) > 0 else None
+    return DeterministicActor(encoder(cfg, env, obs_keys), low, high, tuple(cfg.actor_hidden), grip_hidden=grip)
 
 
 def critic(cfg: Any, env: EnvBase, obs_keys: list[str], num_nets: int, out_dim: int) -> Critic:
@@ -267,13 +269,19 @@ def bc_step(loss: LossModule, optim: dict, batch, precision: str = "float32", re
     ``reg.bc_pedal_expectile`` = tau != 0.5 fits the pedal (action 1) by expectile regression: an error above the
     label (too little braking) weighs ``2 (1 - tau)``, one below ``2 tau`` (tau = 0.5 is the squared error).
 
-    Returns (the regression loss, the smoothness metrics ``loss/smooth_*`` and ``loss/aux``), detached.
+    ``reg.grip_estimate`` = w > 0 (an actor with a grip head: :class:`~torcsrl.nets.DeterministicActor`) adds
+    ``w * mean (grip(features) - mu)^2``, the head regressing the friction coefficient under the car in each row
+    (``privileged[..., surfaceMu]``); logged as ``loss/grip`` (its mean squared error [mu^2]).
+
+    Returns (the regression loss, the smoothness metrics ``loss/smooth_*``, ``loss/aux`` and ``loss/grip``), detached.
     """
+    grip_w = float(getattr(reg, "grip_estimate", 0.0) or 0.0) if reg is not None else 0.0
     with precision_context(precision, batch.device or "cpu"):
         actor = loss.actor_network
         obs = loss.obs(batch)
-        feats = actor.encoder(*obs) if aux is not None else None
-        action = actor(*obs) if aux is None else actor.act(feats)
+        feats = actor.encoder(*obs) if (aux is not None or grip_w > 0) else None
+        grip = actor.grip(feats) if grip_w > 0 else None
+        action = actor(*obs) if feats is None else actor.act(feats, grip)
         err = action.float() - batch.get("expert_action")
         tau = float(getattr(reg, "bc_pedal_expectile", 0.5) if reg is not None else 0.5)
         if tau != 0.5:  # expectile regression of the pedal: braking too little (err > 0) weighs (1 - tau) / tau as much
@@ -287,6 +295,13 @@ def bc_step(loss: LossModule, optim: dict, batch, precision: str = "float32", re
             la = (head(feats).float() - batch.get("privileged")).pow(2).mean()
             total = total + float(weight) * la
             extra = {**extra, "loss/aux": la.detach()}
+        if grip is not None:
+            from torcsrl.demos import PRIVILEGED_SLOTS
+
+            mu = batch.get("privileged")[..., PRIVILEGED_SLOTS.index("surfaceMu"):][..., :1]
+            lg = (grip.float() - mu).pow(2).mean()
+            total = total + grip_w * lg
+            extra = {**extra, "loss/grip": lg.detach()}
     optim["actor"].zero_grad(set_to_none=True)
     total.backward()
     _step(optim["actor"])

@@ -24,12 +24,20 @@ class DeterministicActor(nn.Module):
         encoder: an :class:`ObsEncoder` (owned by the actor; the critic has its own).
         action_low, action_high: action bounds (from the env's action spec).
         hidden: hidden layer sizes.
+        grip_hidden: hidden sizes of a grip-estimate head (``None``: none). With one, the actor is RMA's (Kumar et al.
+            2021) base policy and adaptation module in one network: the head estimates the road's friction
+            coefficient mu [-] from the encoder's features (a state history carries it: wheel spin against speed) and
+            the MLP reads the features and that estimate. The estimate enters the MLP detached: only its own loss
+            (:func:`torcsrl.agents._build.bc_step`, ``algo.grip_estimate``: the rows' privileged mu) trains the head,
+            so it stays an estimate of mu that a researcher can read (:meth:`grip`) rather than one more hidden unit.
     """
 
-    def __init__(self, encoder: ObsEncoder, action_low: torch.Tensor, action_high: torch.Tensor, hidden: Sequence[int]):
+    def __init__(self, encoder: ObsEncoder, action_low: torch.Tensor, action_high: torch.Tensor, hidden: Sequence[int],
+                 grip_hidden: Sequence[int] | None = None):
         super().__init__()
         self.encoder = encoder
-        self.net = mlp(encoder.out_dim, hidden, action_low.numel())
+        self.grip_head = None if grip_hidden is None else mlp(encoder.out_dim, grip_hidden, 1)
+        self.net = mlp(encoder.out_dim + (self.grip_head is not None), hidden, action_low.numel())
         self.register_buffer("a_mid", ((action_high + action_low) / 2).float())
         self.register_buffer("a_half", ((action_high - action_low) / 2).float())
         self._unit = bool((self.a_mid == 0).all() and (self.a_half == 1).all())
@@ -37,8 +45,17 @@ class DeterministicActor(nn.Module):
     def forward(self, *obs: torch.Tensor) -> torch.Tensor:
         return self.act(self.encoder(*obs))
 
-    def act(self, x: torch.Tensor) -> torch.Tensor:
-        """The action from the encoder's features ``x`` (``forward`` = ``act(encoder(*obs))``)."""
+    def grip(self, x: torch.Tensor) -> torch.Tensor:
+        """The grip head's estimate of the road's mu ``[..., 1]`` from the encoder's features ``x`` (a grip actor)."""
+        if self.grip_head is None:
+            raise AttributeError("this actor has no grip head (built without grip_hidden: algo.grip_estimate=0)")
+        return mlp_forward(self.grip_head, x)
+
+    def act(self, x: torch.Tensor, grip: torch.Tensor | None = None) -> torch.Tensor:
+        """The action from the encoder's features ``x`` (``forward`` = ``act(encoder(*obs))``); a grip actor reads
+        ``grip`` (its :meth:`grip` of ``x``, computed here when not given) beside them, detached."""
+        if self.grip_head is not None:
+            x = torch.cat([x, (self.grip(x) if grip is None else grip).detach().to(x.dtype)], -1)
         *hidden, last = self._linears()
         for lin in hidden:  # self.net, without a module call per layer (~5 us each)
             x = F.linear(x, lin.weight, lin.bias).relu_()
@@ -50,8 +67,6 @@ class DeterministicActor(nn.Module):
         if lins is None:
             lins = self.__dict__["_lins"] = [m for m in self.net if isinstance(m, nn.Linear)]
         return lins
-
-
 
 
 class TanhGaussianActor(nn.Module):

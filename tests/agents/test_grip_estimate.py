@@ -1,0 +1,125 @@
+"""``algo.grip_estimate``: an imitation actor with a grip head (RMA's adaptation module) that estimates the road's
+friction mu from its features, trained on the rows' privileged mu, and read by the actor detached."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from _compose import compose_config
+from _history import assert_policy_history_matches_training_env
+
+RACE = ["debug=smoke", "env.track=oval", "env.max_steps=200", "eval.max_steps=30", "threads=1"]
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    torch.set_num_threads(1)
+
+
+def _actor(grip_hidden=(16,)):
+    from torchrl.data import Composite, Unbounded
+
+    from torcsrl.nets import DeterministicActor, ObsEncoder
+
+    torch.manual_seed(0)
+    enc = ObsEncoder(Composite({"state": Unbounded((6,))}, shape=()), ["state"])
+    return DeterministicActor(enc, -torch.ones(2), torch.ones(2), (32, 32), grip_hidden=grip_hidden)
+
+
+def _batch(n=256, seed=0):
+    """Rows where mu is a function of the observation (slot 0) and the label does not depend on mu."""
+    from tensordict import TensorDict
+
+    from torcsrl.demos import PRIVILEGED_SLOTS
+
+    g = torch.Generator().manual_seed(seed)
+    state = torch.rand(n, 6, generator=g) * 2 - 1
+    priv = torch.zeros(n, len(PRIVILEGED_SLOTS))
+    priv[:, PRIVILEGED_SLOTS.index("surfaceMu")] = 0.75 + 0.25 * state[:, 0]
+    label = torch.stack([0.5 * state[:, 1], -0.3 * state[:, 2]], -1)
+    return TensorDict({"state": state, "privileged": priv, "expert_action": label}, batch_size=[n])
+
+
+def test_only_the_grip_loss_trains_the_grip_head():
+    from torcsrl.agents._build import bc_step
+
+    actor = _actor()
+    net = SimpleNamespace(actor_network=actor, obs=lambda b: [b.get("state")])
+    head_before = [p.detach().clone() for p in actor.grip_head.parameters()]
+    optim = {"actor": torch.optim.Adam(actor.parameters(), lr=3e-3)}
+    bc_step(net, optim, _batch(), reg=SimpleNamespace(grip_estimate=0.0))  # the actor's regression alone
+    assert all(torch.equal(a, p) for a, p in zip(head_before, actor.grip_head.parameters()))  # detached: no gradient reached it
+    batch, first = _batch(), None
+    for _ in range(1000):
+        _, extra = bc_step(net, optim, batch, reg=SimpleNamespace(grip_estimate=1.0))
+        first = float(extra["loss/grip"]) if first is None else first
+    assert float(extra["loss/grip"]) < 0.01 * first, (first, float(extra["loss/grip"]))
+    with torch.no_grad():  # the head now reads mu from the features; the actor reads that estimate
+        feats = actor.encoder(batch.get("state"))
+        assert (actor.grip(feats)[:, 0] - batch.get("privileged")[:, -1]).abs().mean() < 0.03
+        torch.testing.assert_close(actor(batch.get("state")), actor.act(feats, actor.grip(feats)))
+        assert not torch.equal(actor.act(feats, torch.zeros(len(feats), 1)), actor.act(feats))  # the estimate is an input
+
+
+def test_an_actor_without_a_head_has_no_estimate():
+    actor = _actor(grip_hidden=None)
+    assert actor.grip_head is None and actor.net[0].in_features == actor.encoder.out_dim
+    with pytest.raises(AttributeError, match="grip_estimate=0"):
+        actor.grip(torch.zeros(1, actor.encoder.out_dim))
+
+
+def test_a_grip_student_trains_logs_its_estimate_and_drives_from_its_checkpoint(tmp_path):
+    """A DAgger student with a state history and a grip head: loss/grip is logged, the checkpoint rebuilds the head and
+    drives a one-reading env feeding its actor exactly what the training env fed it."""
+    from torcsrl.policies import CheckpointPolicy
+    from torcsrl.train import train
+    from torcsrl.utils.checkpoint import latest_checkpoint
+
+    cfg = compose_config(*RACE, "algo=dagger", "state_history=4", "algo.grip_estimate=1.0", "algo.grip_hidden=[8]",
+                         "demos.frames=120", "algo.bc_steps=10", "logger.every_frames=5", "demos.dagger_rounds=1",
+                         "demos.dagger_frames=40", f"run_dir={tmp_path / 'run'}")
+    res = train(cfg)
+    assert res["updates"] == 20
+    log = tmp_path / "run" / "logs" / "dagger" / "scalars" / "loss" / "grip.csv"
+    assert log.is_file() and len(log.read_text().strip().splitlines()) >= 2
+    pol = CheckpointPolicy(latest_checkpoint(tmp_path / "run" / "checkpoints"))
+    assert pol.actor.grip_head is not None and pol.actor.grip_head[0].out_features == 8
+    assert_policy_history_matches_training_env(pol, cfg, 7)
+
+
+@pytest.mark.parametrize("over,msg", [
+    (["algo=td3", "algo.grip_estimate=1.0"], r"algo.grip_estimate=1.0: .*only algo=bc / dagger fit \(algo=td3\)"),
+    (["algo=dagger", "algo.grip_estimate=-1"], r"algo.grip_estimate"),
+    (["algo=dagger", "algo.grip_estimate=1.0", "algo.grip_hidden=[0]"], r"algo.grip_hidden=\[0\]: expected a list"),
+])
+def test_a_grip_head_that_cannot_learn_is_one_line(over, msg):
+    from torcsrl.config import problems
+
+    found = [p for p in problems(compose_config(*RACE, *over)) if "grip" in p]
+    assert len(found) == 1 and "\n" not in found[0], found
+    assert pytest.importorskip("re").search(msg, found[0]), found
+
+
+def test_demonstrations_without_privileged_mu_are_refused_in_one_line(tmp_path):
+    import json
+
+    from torcsrl.demos import DemoError, write_demos
+    from torcsrl.train import train
+
+    base = compose_config(*RACE, "algo=dagger")
+    write_demos(base, tmp_path / "d", frames=30, seed=1)
+    meta_path = next((tmp_path / "d").rglob("meta.json"))
+    meta = json.loads(meta_path.read_text())
+    meta["extra_keys"] = ["expert_action"]  # as demonstrations written before the privileged rows were
+    meta["checksums"] = {k: v for k, v in (meta.get("checksums") or {}).items() if "privileged" not in k}
+    meta_path.write_text(json.dumps(meta))
+    for f in (tmp_path / "d").rglob("privileged*"):
+        f.unlink()
+    cfg = compose_config(*RACE, "algo=dagger", "algo.grip_estimate=1.0", f"demos.path={tmp_path / 'd'}", "demos.frames=0",
+                         "demos.dagger_rounds=0", "algo.bc_steps=2", f"run_dir={tmp_path / 'run'}")
+    with pytest.raises(DemoError, match=r"algo.grip_estimate=1.0 regresses the rows' privileged mu") as err:
+        train(cfg)
+    assert "\n" not in str(err.value)
