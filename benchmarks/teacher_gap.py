@@ -6,7 +6,8 @@ state the student reaches (the DAgger view), and print the per-step gap.
 
 Prints how the episode ended, the mean |steer| and |pedal| gaps, the fraction of steps each brakes (pedal < 0),
 and the last 40 steps (distance from start [m], speedX [km/h], trackPos, angle [rad], the student's and the
-teacher's steer and pedal). ``--frames`` writes every 10th camera frame of the last 70 steps, labelled with the
+teacher's steer and pedal; for a student with a grip head, ``algo.grip_estimate``, its estimate of mu and the road's mu,
+with the estimate's RMSE over the episode). ``--frames`` writes every 10th camera frame of the last 70 steps, labelled with the
 speed and the teacher's pedal, to a PNG (camera students). This is how the sight-200 m teacher's camera student was
 found never to brake on asphalt (torcsrl/assets/reference_camera.md).
 
@@ -50,6 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     env = make_demo_env(cfg, a.seed)
     core = env.base_env.core
     teacher = make_teacher(a.teacher)
+    grip = getattr(pol.actor, "grip_head", None) is not None  # algo.grip_estimate: the actor's own estimate of mu
     td = env.reset()
     teacher.reset(EpisodeContext(track=core.car_tracks[0], seed=a.seed, dt=float(core.dt)))
     rows, frames, end = [], [], "step cap"
@@ -58,10 +60,13 @@ def main(argv: list[str] | None = None) -> int:
             teacher(td)
             label = td.get("action").clone()
             with torch.no_grad():  # the demo env already applies the run's observation pipeline (scaling included):
-                act = pol.actor(*(td.get(k) for k in pol.obs_keys)).reshape(label.shape)  # the actor, not pol(td)
+                obs = [td.get(k) for k in pol.obs_keys]
+                act = pol.actor(*obs).reshape(label.shape)  # the actor, not pol(td)
+                mu_hat = float(pol.actor.grip(pol.actor.encoder(*obs))) if grip else float("nan")
             td.set("action", act if a.driver == "student" else label)
             st = td.get("state_clean")
-            rows.append((float(td.get(("info", "distFromStart"))), float(st[2]), float(st[1]), float(st[0]), *act.tolist(), *label.tolist()))
+            rows.append((float(td.get(("info", "distFromStart"))), float(st[2]), float(st[1]), float(st[0]), *act.tolist(), *label.tolist(),
+                         mu_hat, float(td.get(("info", "surfaceMu")).reshape(-1)[0])))
             if "pixels" in td.keys():
                 frames.append(td.get("pixels")[-3:].clone())  # the newest frame (of a frame_stack student's stack)
             td = env.step(td)
@@ -78,7 +83,14 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{a.checkpoint} on {a.track}/{a.surface}, teacher {a.teacher}, {a.driver} driving: {end}")
     print(f"mean |steer gap| {gap[:, 0].mean():.3f}, mean |pedal gap| {gap[:, 1].mean():.3f}; "
           f"brakes on {100 * (r[:, 5] < 0).mean():.0f} % of steps (teacher: {100 * (r[:, 7] < 0).mean():.0f} %)")
-    head = "| dist m | speedX km/h | trackPos | angle rad | steer | pedal | teacher steer | teacher pedal |\n|" + "---|" * 8
+    if grip:
+        err = r[:, 8] - r[:, 9]
+        print(f"grip estimate: mean {r[:, 8].mean():.3f} for the road's mu {r[:, 9].mean():.3f} (RMSE {np.sqrt((err ** 2).mean()):.3f}; "
+              f"last 100 steps: mean {r[-100:, 8].mean():.3f})")
+    else:
+        r = r[:, :8]
+    head = ("| dist m | speedX km/h | trackPos | angle rad | steer | pedal | teacher steer | teacher pedal |" + (" mu_hat | mu |" if grip else "")
+            + "\n|" + "---|" * r.shape[1])
     if a.driver == "student":
         print(head)
         for row in r[-40::4]:

@@ -3,6 +3,7 @@ friction mu from its features, trained on the rows' privileged mu, and read by t
 
 from __future__ import annotations
 
+import re
 from types import SimpleNamespace
 
 import pytest
@@ -71,9 +72,9 @@ def test_an_actor_without_a_head_has_no_estimate():
         actor.grip(torch.zeros(1, actor.encoder.out_dim))
 
 
-def test_a_grip_student_trains_logs_its_estimate_and_drives_from_its_checkpoint(tmp_path):
+def test_a_grip_student_trains_logs_its_estimate_and_drives_from_its_checkpoint(tmp_path, capsys):
     """A DAgger student with a state history and a grip head: loss/grip is logged, the checkpoint rebuilds the head and
-    drives a one-reading env feeding its actor exactly what the training env fed it."""
+    drives a one-reading env feeding its actor exactly what the training env fed it; teacher_gap prints its estimate."""
     from torcsrl.policies import CheckpointPolicy
     from torcsrl.train import train
     from torcsrl.utils.checkpoint import latest_checkpoint
@@ -88,6 +89,12 @@ def test_a_grip_student_trains_logs_its_estimate_and_drives_from_its_checkpoint(
     pol = CheckpointPolicy(latest_checkpoint(tmp_path / "run" / "checkpoints"))
     assert pol.actor.grip_head is not None and pol.actor.grip_head[0].out_features == 8
     assert_policy_history_matches_training_env(pol, cfg, 7)
+    from _bench import load_benchmark
+
+    ck = str(latest_checkpoint(tmp_path / "run" / "checkpoints"))  # benchmarks/teacher_gap.py shows the estimate beside mu
+    assert load_benchmark("teacher_gap").main([ck, "--track", "oval", "--surface", "dirt", "--teacher", "racer_bold", "--steps", "30"]) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"grip estimate: mean -?[0-9.]+ for the road's mu 0\.[0-9]+ \(RMSE [0-9.]+", out) and "| mu_hat | mu |" in out, out
 
 
 @pytest.mark.parametrize("over,msg", [
@@ -100,7 +107,7 @@ def test_a_grip_head_that_cannot_learn_is_one_line(over, msg):
 
     found = [p for p in problems(compose_config(*RACE, *over)) if "grip" in p]
     assert len(found) == 1 and "\n" not in found[0], found
-    assert pytest.importorskip("re").search(msg, found[0]), found
+    assert re.search(msg, found[0]), found
 
 
 def test_demonstrations_without_privileged_mu_are_refused_in_one_line(tmp_path):
