@@ -10,7 +10,7 @@ percentile estimate per μ on the other four (gen-10005…10008). Held-out track
 
     python benchmarks/grip_probe.py [--policy sensor] [--history 1 10 30] [--steps 700] [--fit-steps 4000]
 
-It is why ``state_history`` exists (README, *Drivers that see*): on 2026-11-27 the probe gave RMSE 0.096
+It is why ``state_history`` exists (README, *Drivers that see*): on 2026-11-27 the probe gave RMSE 0.119
 from one reading and 0.070 from ten (1 s at 10 Hz).
 """
 

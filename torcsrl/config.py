@@ -507,6 +507,17 @@ def _check_algo_fit(c: Mapping, out: list[str]) -> None:
     if _is_num(grip) and grip > 0 and name not in ("bc", "dagger"):
         out.append(f"algo.grip_estimate={grip}: the grip head learns from the demonstrations' privileged mu, which only algo=bc / "
                    f"dagger fit (algo={name}); allowed: 0, or algo=bc / dagger")
+    gin, readings, k = algo.get("grip_inputs", "all"), algo.get("actor_readings"), c.get("state_history", 1)
+    if gin not in ("all", "history"):
+        out.append(f"algo.grip_inputs={gin!r}; allowed: all (every feature), history (the state history only)")
+    if readings is not None and (isinstance(readings, bool) or not _is_num(readings) or not float(readings).is_integer() or readings < 1):
+        out.append(f"algo.actor_readings={readings!r}; allowed: null (the whole state history) or a number of readings >= 1")
+    elif readings is not None and _is_num(k) and readings > k:
+        out.append(f"algo.actor_readings={readings}: the actor's MLP would read more readings than state_history={k} holds; allowed: "
+                   f"1..{k}, or null")
+    if (gin == "history" or readings is not None) and not (_is_num(grip) and grip > 0):
+        out.append(f"algo.grip_inputs={gin} / actor_readings={readings} shape a grip head, which algo.grip_estimate={grip} does not "
+                   "build; allowed: grip_estimate > 0, or grip_inputs=all and actor_readings=null")
     hid = algo.get("grip_hidden", [64])
     if not (isinstance(hid, Sequence) and not isinstance(hid, str) and all(_is_num(h) and float(h).is_integer() and h >= 1 for h in hid)):
         out.append(f"algo.grip_hidden={hid!r}: expected a list of hidden layer sizes >= 1, e.g. [64] (or [] for a linear head)")

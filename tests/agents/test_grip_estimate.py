@@ -65,6 +65,35 @@ def test_only_the_grip_loss_trains_the_grip_head():
         assert not torch.equal(actor.act(feats, torch.zeros(len(feats), 1)), actor.act(feats))  # the estimate is an input
 
 
+def test_a_long_history_feeds_the_estimate_and_the_newest_readings_the_policy():
+    """grip_inputs=history, actor_readings=R: the head reads every reading of the state history, the MLP the newest R
+    (and the other keys): older readings move the action only through the estimate."""
+    from torchrl.data import Composite, Unbounded
+
+    from torcsrl.agents._build import grip_layout
+    from torcsrl.nets import DeterministicActor, ObsEncoder
+
+    spec = Composite({"rangefinder": Unbounded((19,)), "state": Unbounded((44,)), "opponents": Unbounded((36,))}, shape=())
+    enc = ObsEncoder(spec, ["rangefinder", "state", "opponents"])
+    grip_in, policy_in = grip_layout(enc, "history", 1)
+    assert grip_in == list(range(19, 63)) and policy_in == list(range(19)) + list(range(52, 99))
+    assert grip_layout(enc, "all", None) == (None, None)
+    torch.manual_seed(0)
+    actor = DeterministicActor(enc, -torch.ones(2), torch.ones(2), (32,), grip_hidden=(8,), grip_inputs=grip_in, policy_inputs=policy_in)
+    assert actor.grip_head[0].in_features == 44 and actor.net[0].in_features == 19 + 36 + 11 + 1
+    assert not any("inputs" in k for k in actor.state_dict())  # rebuilt from the config, not stored
+    obs = [torch.rand(5, 19), torch.rand(5, 44), torch.rand(5, 36)]
+    older = [obs[0], torch.cat([torch.rand(5, 33), obs[1][:, 33:]], -1), obs[2]]  # the same newest reading
+    with torch.no_grad():
+        f, g = actor.encoder(*obs), actor.encoder(*older)
+        assert not torch.allclose(actor.grip(f), actor.grip(g))  # the head reads the old readings
+        torch.testing.assert_close(actor.act(f, actor.grip(f)), actor.act(g, actor.grip(f)))  # the MLP does not
+        assert not torch.allclose(actor.act(f, actor.grip(f)), actor.act(f, actor.grip(f) + 0.5))
+    cam = ObsEncoder(Composite({"pixels": Unbounded((3, 8, 8), dtype=torch.uint8)}, shape=()), ["pixels"], cnn_channels=(4,))
+    with pytest.raises(ValueError, match="select from a state history, which the actor's observations \\(pixels\\) do not hold"):
+        grip_layout(cam, "history", None)
+
+
 def test_an_actor_without_a_head_has_no_estimate():
     actor = _actor(grip_hidden=None)
     assert actor.grip_head is None and actor.net[0].in_features == actor.encoder.out_dim
@@ -80,6 +109,7 @@ def test_a_grip_student_trains_logs_its_estimate_and_drives_from_its_checkpoint(
     from torcsrl.utils.checkpoint import latest_checkpoint
 
     cfg = compose_config(*RACE, "algo=dagger", "state_history=4", "algo.grip_estimate=1.0", "algo.grip_hidden=[8]",
+                         "algo.grip_inputs=history", "algo.actor_readings=2",
                          "demos.frames=120", "algo.bc_steps=10", "logger.every_frames=5", "demos.dagger_rounds=1",
                          "demos.dagger_frames=40", f"run_dir={tmp_path / 'run'}")
     res = train(cfg)
@@ -88,6 +118,7 @@ def test_a_grip_student_trains_logs_its_estimate_and_drives_from_its_checkpoint(
     assert log.is_file() and len(log.read_text().strip().splitlines()) >= 2
     pol = CheckpointPolicy(latest_checkpoint(tmp_path / "run" / "checkpoints"))
     assert pol.actor.grip_head is not None and pol.actor.grip_head[0].out_features == 8
+    assert pol.actor.grip_head[0].in_features == 44 and pol.actor.net[0].in_features == 19 + 22 + 1  # 4 readings / the newest 2
     assert_policy_history_matches_training_env(pol, cfg, 7)
     from _bench import load_benchmark
 
@@ -101,11 +132,15 @@ def test_a_grip_student_trains_logs_its_estimate_and_drives_from_its_checkpoint(
     (["algo=td3", "algo.grip_estimate=1.0"], r"algo.grip_estimate=1.0: .*only algo=bc / dagger fit \(algo=td3\)"),
     (["algo=dagger", "algo.grip_estimate=-1"], r"algo.grip_estimate"),
     (["algo=dagger", "algo.grip_estimate=1.0", "algo.grip_hidden=[0]"], r"algo.grip_hidden=\[0\]: expected a list"),
+    (["algo=dagger", "algo.grip_estimate=1.0", "algo.grip_inputs=road"], r"algo.grip_inputs='road'; allowed: all .*history"),
+    (["algo=dagger", "algo.grip_estimate=1.0", "state_history=4", "algo.actor_readings=5"],
+     r"algo.actor_readings=5: .* state_history=4 holds; allowed: 1..4"),
+    (["algo=dagger", "state_history=4", "algo.actor_readings=2"], r"shape a grip head, which algo.grip_estimate=0.0 does not build"),
 ])
 def test_a_grip_head_that_cannot_learn_is_one_line(over, msg):
     from torcsrl.config import problems
 
-    found = [p for p in problems(compose_config(*RACE, *over)) if "grip" in p]
+    found = [p for p in problems(compose_config(*RACE, *over)) if "grip" in p or "actor_readings" in p]
     assert len(found) == 1 and "\n" not in found[0], found
     assert re.search(msg, found[0]), found
 

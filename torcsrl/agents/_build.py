@@ -36,10 +36,43 @@ def encoder(cfg: Any, env: EnvBase, obs_keys: list[str], obs_norm: bool = False)
 
 
 def actor(cfg: Any, env: EnvBase, obs_keys: list[str]) -> DeterministicActor:
-    """mu(s); with ``algo.grip_estimate > 0`` (imitation only) it carries a grip head of ``algo.grip_hidden``."""
+    """mu(s); with ``algo.grip_estimate > 0`` (imitation only) it carries a grip head of ``algo.grip_hidden`` reading
+    ``algo.grip_inputs`` (all the features, or the state history only), its MLP the newest ``algo.actor_readings`` of
+    that history (all when null) beside the estimate (:func:`grip_layout`)."""
     low, high = action_bounds(env)
-    grip = tuple(cfg.get("grip_hidden", (64,))) if float(cfg.get("grip_estimate", 0.0) or 0.0) > 0 else None
-    return DeterministicActor(encoder(cfg, env, obs_keys), low, high, tuple(cfg.actor_hidden), grip_hidden=grip)
+    enc = encoder(cfg, env, obs_keys)
+    if float(cfg.get("grip_estimate", 0.0) or 0.0) <= 0:
+        return DeterministicActor(enc, low, high, tuple(cfg.actor_hidden))
+    grip_in, policy_in = grip_layout(enc, str(cfg.get("grip_inputs", "all")), cfg.get("actor_readings"))
+    return DeterministicActor(enc, low, high, tuple(cfg.actor_hidden), grip_hidden=tuple(cfg.get("grip_hidden", (64,))),
+                              grip_inputs=grip_in, policy_inputs=policy_in)
+
+
+def grip_layout(enc: ObsEncoder, grip_inputs: str = "all", actor_readings: int | None = None) -> tuple[list[int] | None, list[int] | None]:
+    """(the feature indices a grip head reads, those the actor's MLP reads) of an encoder whose vector features hold a
+    state history (``state`` / ``telemetry`` as K readings, oldest first: ``state_history``). ``grip_inputs``: ``all``
+    (None) or ``history`` (every reading of the history keys); ``actor_readings`` R: the MLP reads every feature but
+    the history keys' readings older than the newest R (None: all). ValueError (one line) when the features hold no
+    history to select from."""
+    from torcsrl.envs.sensors import STATE_SLOTS, TELEMETRY_SLOTS
+
+    one = {"state": len(STATE_SLOTS), "telemetry": len(TELEMETRY_SLOTS)}
+    if grip_inputs not in ("all", "history"):
+        raise ValueError(f"algo.grip_inputs={grip_inputs!r}; allowed: all (every feature), history (the state history only)")
+    start, hist, old = 0, [], set()
+    for k, d in zip(enc.vec_keys, enc.vec_dims):
+        if k in one:
+            hist.extend(range(start, start + d))
+            if actor_readings is not None:
+                old.update(range(start, start + max(0, d - int(actor_readings) * one[k])))
+        start += d
+    if not hist and (grip_inputs == "history" or actor_readings is not None):
+        raise ValueError(f"algo.grip_inputs={grip_inputs} / actor_readings={actor_readings} select from a state history, which the "
+                         f"actor's observations ({', '.join(enc.keys)}) do not hold; allowed: grip_inputs=all, actor_readings=null, "
+                         "or observations with state / telemetry")
+    grip_in = hist if grip_inputs == "history" else None
+    policy_in = None if actor_readings is None else [i for i in range(enc.out_dim) if i not in old]
+    return grip_in, policy_in
 
 
 def critic(cfg: Any, env: EnvBase, obs_keys: list[str], num_nets: int, out_dim: int) -> Critic:

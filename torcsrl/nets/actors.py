@@ -30,14 +30,26 @@ class DeterministicActor(nn.Module):
             the MLP reads the features and that estimate. The estimate enters the MLP detached: only its own loss
             (:func:`torcsrl.agents._build.bc_step`, ``algo.grip_estimate``: the rows' privileged mu) trains the head,
             so it stays an estimate of mu that a researcher can read (:meth:`grip`) rather than one more hidden unit.
+        grip_inputs: the feature indices the grip head reads (``None``: all), e.g. a long state history only.
+        policy_inputs: the feature indices the MLP reads beside the estimate (``None``: all), e.g. the newest readings of
+            that history: RMA's split, a long history for the adaptation module and a short one for the policy.
     """
 
     def __init__(self, encoder: ObsEncoder, action_low: torch.Tensor, action_high: torch.Tensor, hidden: Sequence[int],
-                 grip_hidden: Sequence[int] | None = None):
+                 grip_hidden: Sequence[int] | None = None, grip_inputs: Sequence[int] | None = None,
+                 policy_inputs: Sequence[int] | None = None):
         super().__init__()
         self.encoder = encoder
-        self.grip_head = None if grip_hidden is None else mlp(encoder.out_dim, grip_hidden, 1)
-        self.net = mlp(encoder.out_dim + (self.grip_head is not None), hidden, action_low.numel())
+        for name, idx in (("grip_inputs", grip_inputs), ("policy_inputs", policy_inputs)):
+            if idx is not None and (len(idx) == 0 or min(idx) < 0 or max(idx) >= encoder.out_dim):
+                raise ValueError(f"DeterministicActor: {name} must index the encoder's {encoder.out_dim} features; got {len(idx)} "
+                                 f"indices in [{min(idx, default=None)}, {max(idx, default=None)}]")
+            # rebuilt from the config with the actor (not in the state dict: checkpoints stay as they were)
+            self.register_buffer(f"_{name}", None if idx is None else torch.as_tensor(list(idx), dtype=torch.long), persistent=False)
+        n_grip = encoder.out_dim if grip_inputs is None else len(grip_inputs)
+        self.grip_head = None if grip_hidden is None else mlp(n_grip, grip_hidden, 1)
+        n_in = encoder.out_dim if policy_inputs is None else len(policy_inputs)
+        self.net = mlp(n_in + (self.grip_head is not None), hidden, action_low.numel())
         self.register_buffer("a_mid", ((action_high + action_low) / 2).float())
         self.register_buffer("a_half", ((action_high - action_low) / 2).float())
         self._unit = bool((self.a_mid == 0).all() and (self.a_half == 1).all())
@@ -49,13 +61,17 @@ class DeterministicActor(nn.Module):
         """The grip head's estimate of the road's mu ``[..., 1]`` from the encoder's features ``x`` (a grip actor)."""
         if self.grip_head is None:
             raise AttributeError("this actor has no grip head (built without grip_hidden: algo.grip_estimate=0)")
-        return mlp_forward(self.grip_head, x)
+        return mlp_forward(self.grip_head, x if self._grip_inputs is None else x.index_select(-1, self._grip_inputs))
 
     def act(self, x: torch.Tensor, grip: torch.Tensor | None = None) -> torch.Tensor:
         """The action from the encoder's features ``x`` (``forward`` = ``act(encoder(*obs))``); a grip actor reads
         ``grip`` (its :meth:`grip` of ``x``, computed here when not given) beside them, detached."""
+        if self.grip_head is not None and grip is None:
+            grip = self.grip(x)
+        if self._policy_inputs is not None:
+            x = x.index_select(-1, self._policy_inputs)
         if self.grip_head is not None:
-            x = torch.cat([x, (self.grip(x) if grip is None else grip).detach().to(x.dtype)], -1)
+            x = torch.cat([x, grip.detach().to(x.dtype)], -1)
         *hidden, last = self._linears()
         for lin in hidden:  # self.net, without a module call per layer (~5 us each)
             x = F.linear(x, lin.weight, lin.bias).relu_()

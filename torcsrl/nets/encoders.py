@@ -104,9 +104,11 @@ class ObsEncoder(nn.Module):
         self._img_pos = [self.keys.index(k) for k in self.img_keys]
         nb = len(obs_spec.shape)
         los, his, self.vec_dim = [], [], 0
+        self.vec_dims: list[int] = []  # per vector key, in vec_keys order: its slice of the features
         for k in self.vec_keys:
             s = obs_spec[k]
             n = s.shape[-1]
+            self.vec_dims.append(int(n))
             b = _finite_bounds(s)
             if b is None:
                 lo, hi = -torch.ones(n), torch.ones(n)
