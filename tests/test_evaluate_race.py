@@ -21,11 +21,13 @@ def test_race_table_from_a_short_race(tmp_path):
     row = res["episodes"][0]
     assert row["success"] and row["position"] == 1 and row["win"]  # from pole at full pace against 60 % pace
     assert row["collisions"] == 0 and row["damage"] == 0.0 and row["lead_m"] > 0 and row["opponents"] == 2
+    assert row["start_position"] == 1 and row["opponent_paces"] == [0.6, 0.6]  # learner_slot first
     s = res["summary"][0]
     assert (s["races"], s["finished"], s["wins"], s["mean_position"]) == (1, 1, 1, 1.0)
     md = (tmp_path / "race.md").read_text()
     assert "| " + " | ".join(RACE_COLUMNS) + " |" in md and "| oval | asphalt | 1 | 1/1 | 1/1 | 1.00 | 0.00 |" in md
     assert "give 3.2 m of room to a car alongside" in md  # which opponents the table was raced against
+    assert md.split("| oval | asphalt | 1 | 1/1 | 1/1 |")[1].split("\n")[0].rstrip().endswith("| 1 |")  # 1 scenario raced
     assert (tmp_path / "race_oval_asphalt.png").stat().st_size > 0 and (tmp_path / "race_episodes.csv").exists()
 
 
@@ -38,6 +40,24 @@ def test_race_summary_counts_dnf_and_table_rows():
     assert (s["finished"], s["wins"], s["mean_position"], s["collisions_per_race"]) == (1, 0, 2.0, 2.0)
     header, body = race_table([s])
     assert header == list(RACE_COLUMNS) and body[0][3:6] == ["1/2", "0/2", "2.00"]
+
+
+def test_races_from_the_same_start_are_the_same_race_and_the_table_counts_scenarios():
+    """Deterministic physics: against identical opponents at one pace the race seed only moves the learner's start
+    position, and two races from the same start end the same; `scenarios` counts the distinct starts (and paces)."""
+    tr = {"opponents": 1, "driver": {"kind": "expert", "pace": 0.6}, "order": "random"}
+    kw = {"laps": 1, "traffic": tr, "env_kwargs": {"control_hz": 10, "substeps": 20}, "plots": False, "verbose": False}
+    rows = evaluate_race("expert", "oval", episodes=4, **kw)["episodes"]
+    starts = [r["start_position"] for r in rows]
+    assert set(starts) <= {1, 2} and len(set(r["env_seed"] for r in rows)) == 4
+    by_start = {}
+    for r in rows:
+        by_start.setdefault(r["start_position"], set()).add((r["steps"], r["fastest_lap"], r["position"]))
+    assert all(len(v) == 1 for v in by_start.values()), by_start  # one race per start, whatever the seed
+    assert race_summary(rows)["scenarios"] == len(set(starts))
+    drawn = evaluate_race("expert", "oval", episodes=4, **{**kw, "traffic": {**tr, "driver": {"kind": "expert", "pace": [0.55, 0.65]}}})
+    assert drawn["summary"][0]["scenarios"] == 4  # a pace drawn per race: every race its own
+    assert len({r["opponent_paces"][0] for r in drawn["episodes"]}) == 4
 
 
 def test_race_mode_bad_input_one_line():

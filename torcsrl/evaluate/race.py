@@ -9,8 +9,13 @@ policy (common random numbers).
 Per race (``episodes.csv``): the time-trial numbers (laps, success, fastest lap, ...) plus ``position`` (1 = won;
 ``None`` when the learner did not finish), ``win`` (finished first), ``overtakes`` (net cars passed), ``collisions``
 (contacts begun with another car), ``damage`` (summed contact impulse [kN s]), ``gap_ahead_m`` (along-track gap to
-the car ahead at the end; 0 when leading) and ``lead_m`` (how far ahead of the next car a winner finished, or how far
-behind the leader [m, negative] another finished).
+the car ahead at the end; 0 when leading), ``lead_m`` (how far ahead of the next car a winner finished, or how far
+behind the leader [m, negative] another finished), ``start_position`` (the learner's place at the start, 1 = front)
+and ``opponent_paces`` (each opponent's drawn pace).
+
+The table's ``scenarios`` column counts the distinct starts raced (start position and opponent paces): the physics is
+deterministic, so against identical opponents at one pace a track has at most K + 1 distinct races whatever the number
+of races — ``pace=[lo,hi]`` (a pace drawn per race and car) or ``start=random`` make more.
 """
 
 from __future__ import annotations
@@ -94,7 +99,8 @@ def run_race_cell(policy: Policy, track: str, surface: str | None, traffic: Mapp
                          "position": pos if finished else None, "win": finished and pos == 1,
                          "overtakes": int(tr.overtakes[0]), "collisions": int(tr.collisions[0]),
                          "damage": float(tr.damage[0]), "gap_ahead_m": 0.0 if pos == 1 else float(tr.gap_ahead[0]),
-                         "lead_m": lead})
+                         "lead_m": lead, "start_position": 1 + int((tr.start_back[members][1:] < tr.start_back[members][0]).sum()),
+                         "opponent_paces": [round(float(v), 4) for v in np.asarray(tr.pace)[: int(tr.K)]]})
             traces.append({"xy": np.asarray(xy), "hits": hits, "learner": 0} if trace else {})
     finally:
         env.close()
@@ -115,11 +121,12 @@ def race_summary(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
             "collisions_per_race": mean([r["collisions"] for r in rows]),
             "overtakes_per_race": mean([r["overtakes"] for r in rows]),
             "damage_per_race": mean([r["damage"] for r in rows]),
-            "mean_gap_ahead_m": mean([r["gap_ahead_m"] for r in fin]), "mean_lead_m": mean([r["lead_m"] for r in fin])}
+            "mean_gap_ahead_m": mean([r["gap_ahead_m"] for r in fin]), "mean_lead_m": mean([r["lead_m"] for r in fin]),
+            "scenarios": len({(r["track"], r["surface"], r.get("start_position"), tuple(r.get("opponent_paces") or ())) for r in rows})}
 
 
 RACE_COLUMNS = ("track", "surface", "races", "finished", "wins", "mean pos", "collisions/race", "overtakes/race",
-                "damage/race [kN s]", "gap ahead [m]", "lead [m]")
+                "damage/race [kN s]", "gap ahead [m]", "lead [m]", "scenarios")
 
 
 def race_table(summaries: Sequence[Mapping[str, Any]]) -> tuple[list[str], list[list[str]]]:
@@ -128,7 +135,7 @@ def race_table(summaries: Sequence[Mapping[str, Any]]) -> tuple[list[str], list[
     for s in summaries:
         body.append([s["track"], s["surface"], str(s["races"]), f"{s['finished']}/{s['races']}", f"{s['wins']}/{s['races']}",
                      _f(s["mean_position"]), _f(s["collisions_per_race"]), _f(s["overtakes_per_race"]),
-                     _f(s["damage_per_race"]), _f(s["mean_gap_ahead_m"], "{:.1f}"), _f(s["mean_lead_m"], "{:.1f}")])
+                     _f(s["damage_per_race"]), _f(s["mean_gap_ahead_m"], "{:.1f}"), _f(s["mean_lead_m"], "{:.1f}"), str(s["scenarios"])])
     return list(RACE_COLUMNS), body
 
 
@@ -205,7 +212,9 @@ def evaluate_race(policy: str | Policy, tracks: str | Sequence[str], surfaces: A
               f"(side_gap_m{'; 0: blind to it' if room == 0 else ''}).", "", markdown_table(header, body), "",
               "finished: races completed without leaving the track; wins: finished first; mean pos: over finished races; "
               "collisions: contacts begun with another car; damage: summed contact impulse; gap ahead: along-track gap to "
-              "the car ahead at the end; lead: margin over the next car (winners) or behind the leader (negative).", ""]
+              "the car ahead at the end; lead: margin over the next car (winners) or behind the leader (negative); scenarios: "
+              "distinct starts raced (the learner's start position and the opponents' paces) — the physics is deterministic, "
+              "so races from the same start are the same race.", ""]
         (out / "race.md").write_text("\n".join(md))
         write_csv(summaries, out / "race.csv")
         write_csv(all_rows, out / "race_episodes.csv")
