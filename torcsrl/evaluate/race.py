@@ -14,8 +14,9 @@ behind the leader [m, negative] another finished), ``start_position`` (the learn
 and ``opponent_paces`` (each opponent's drawn pace).
 
 The table's ``scenarios`` column counts the distinct starts raced (start position and opponent paces): the physics is
-deterministic, so against identical opponents at one pace a track has at most K + 1 distinct races whatever the number
-of races — ``pace=[lo,hi]`` (a pace drawn per race and car) or ``start=random`` make more.
+deterministic, so against identical opponents at one pace a track has at most K + 1 distinct starts whatever the number
+of races, and the same start gives the same race (tested with one opponent) — ``pace=[lo,hi]`` (a pace drawn per race
+and car) or ``start=random`` make more.
 """
 
 from __future__ import annotations
