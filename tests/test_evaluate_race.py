@@ -58,6 +58,8 @@ def test_races_from_the_same_start_are_the_same_race_and_the_table_counts_scenar
     drawn = evaluate_race("expert", "oval", episodes=4, **{**kw, "traffic": {**tr, "driver": {"kind": "expert", "pace": [0.55, 0.65]}}})
     assert drawn["summary"][0]["scenarios"] == 4  # a pace drawn per race: every race its own
     assert len({r["opponent_paces"][0] for r in drawn["episodes"]}) == 4
+    rolling = evaluate_race("expert", "oval", episodes=3, **{**kw, "env_kwargs": {**kw["env_kwargs"], "start": "random"}})  # evaluate start=random: the grid at a random point of the lap
+    assert rolling["summary"][0]["scenarios"] == 3 and len({tuple(r["start_xy_m"]) for r in rolling["episodes"]}) == 3
 
 
 def test_race_mode_bad_input_one_line():

@@ -10,10 +10,10 @@ Per race (``episodes.csv``): the time-trial numbers (laps, success, fastest lap,
 ``None`` when the learner did not finish), ``win`` (finished first), ``overtakes`` (net cars passed), ``collisions``
 (contacts begun with another car), ``damage`` (summed contact impulse [kN s]), ``gap_ahead_m`` (along-track gap to
 the car ahead at the end; 0 when leading), ``lead_m`` (how far ahead of the next car a winner finished, or how far
-behind the leader [m, negative] another finished), ``start_position`` (the learner's place at the start, 1 = front)
-and ``opponent_paces`` (each opponent's drawn pace).
+behind the leader [m, negative] another finished), ``start_position`` (the learner's place at the start, 1 = front),
+``start_xy_m`` (where it started, track frame [m]) and ``opponent_paces`` (each opponent's drawn pace).
 
-The table's ``scenarios`` column counts the distinct starts raced (start position and opponent paces): the physics is
+The table's ``scenarios`` column counts the distinct starts raced (start position and point, opponent paces): the physics is
 deterministic, so against identical opponents at one pace a track has at most K + 1 distinct starts whatever the number
 of races, and the same start gives the same race (tested with one opponent) — ``pace=[lo,hi]`` (a pace drawn per race
 and car) or ``start=random`` make more.
@@ -75,7 +75,11 @@ def run_race_cell(policy: Policy, track: str, surface: str | None, traffic: Mapp
             hits: list[tuple[int, int]] = []
             seen = np.zeros(core.n, dtype=np.int64)
 
+            start_xy: list[float] = []
+
             def observer(t: int, td: Any) -> None:
+                if t == 0:  # where the learner starts (its track frame): with the paces, what makes a race its own
+                    start_xy[:] = [round(float(v), 2) for v in core.fleet.pos[0, :2] - core.car_origins()[0]]
                 if trace:
                     xy.append(core.fleet.pos[:, :2] - core.car_origins())
                     if t == 0:
@@ -101,7 +105,7 @@ def run_race_cell(policy: Policy, track: str, surface: str | None, traffic: Mapp
                          "overtakes": int(tr.overtakes[0]), "collisions": int(tr.collisions[0]),
                          "damage": float(tr.damage[0]), "gap_ahead_m": 0.0 if pos == 1 else float(tr.gap_ahead[0]),
                          "lead_m": lead, "start_position": 1 + int((tr.start_back[members][1:] < tr.start_back[members][0]).sum()),
-                         "opponent_paces": [round(float(v), 4) for v in np.asarray(tr.pace)[: int(tr.K)]]})
+                         "opponent_paces": [round(float(v), 4) for v in np.asarray(tr.pace)[: int(tr.K)]], "start_xy_m": start_xy})
             traces.append({"xy": np.asarray(xy), "hits": hits, "learner": 0} if trace else {})
     finally:
         env.close()
@@ -123,7 +127,8 @@ def race_summary(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
             "overtakes_per_race": mean([r["overtakes"] for r in rows]),
             "damage_per_race": mean([r["damage"] for r in rows]),
             "mean_gap_ahead_m": mean([r["gap_ahead_m"] for r in fin]), "mean_lead_m": mean([r["lead_m"] for r in fin]),
-            "scenarios": len({(r["track"], r["surface"], r.get("start_position"), tuple(r.get("opponent_paces") or ())) for r in rows})}
+            "scenarios": len({(r["track"], r["surface"], r.get("start_position"), tuple(r.get("start_xy_m") or ()),
+                               tuple(r.get("opponent_paces") or ())) for r in rows})}
 
 
 RACE_COLUMNS = ("track", "surface", "races", "finished", "wins", "mean pos", "collisions/race", "overtakes/race",
