@@ -331,7 +331,8 @@ def bc_step(loss: LossModule, optim: dict, batch, precision: str = "float32", re
         if grip is not None:
             from torcsrl.demos import PRIVILEGED_SLOTS
 
-            mu = batch.get("privileged")[..., PRIVILEGED_SLOTS.index("surfaceMu"):][..., :1]
+            i = PRIVILEGED_SLOTS.index("surfaceMu")
+            mu = batch.get("privileged")[..., i:i + 1]
             lg = (grip.float() - mu).pow(2).mean()
             total = total + grip_w * lg
             extra = {**extra, "loss/grip": lg.detach()}

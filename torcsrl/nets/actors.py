@@ -46,6 +46,7 @@ class DeterministicActor(nn.Module):
                                  f"indices in [{min(idx, default=None)}, {max(idx, default=None)}]")
             # rebuilt from the config with the actor (not in the state dict: checkpoints stay as they were)
             self.register_buffer(f"_{name}", None if idx is None else torch.as_tensor(list(idx), dtype=torch.long), persistent=False)
+        self._selects = policy_inputs is not None  # a plain attribute: act() reads no buffer unless it selects
         n_grip = encoder.out_dim if grip_inputs is None else len(grip_inputs)
         self.grip_head = None if grip_hidden is None else mlp(n_grip, grip_hidden, 1)
         n_in = encoder.out_dim if policy_inputs is None else len(policy_inputs)
@@ -68,7 +69,7 @@ class DeterministicActor(nn.Module):
         ``grip`` (its :meth:`grip` of ``x``, computed here when not given) beside them, detached."""
         if self.grip_head is not None and grip is None:
             grip = self.grip(x)
-        if self._policy_inputs is not None:
+        if self._selects:
             x = x.index_select(-1, self._policy_inputs)
         if self.grip_head is not None:
             x = torch.cat([x, grip.detach().to(x.dtype)], -1)
