@@ -28,6 +28,8 @@ spec                          policy
 ``racer``                     :class:`SensorRacer`: ``sensor_fast`` that passes (or lifts for) the
                               cars its ``opponents`` sensor shows: the race student's teacher
 ``racer_bold``                the same with ``SensorRacer.BOLD`` (passes more, collides more)
+``racer_safe[:<gamma>]``      ``racer_bold`` braking at ``9 mu^gamma`` m/s^2 (gamma 2): as bold on asphalt,
+                              a margin on low grip
 ``heuristic``                 a sensor-only driver in the style of the TORCS SCR sample robot:
                               steers from ``angle`` / ``trackPos`` and the longest rangefinder
                               beam, picks its speed from the free distance ahead
@@ -106,7 +108,7 @@ REFERENCE_CAMERA_POLICY = Path(__file__).resolve().parent / "assets" / "referenc
 REFERENCE_RACER_POLICY = Path(__file__).resolve().parent / "assets" / "reference_racer.pt"
 #: Names of the built-in policies (anything else is a checkpoint path).
 BUILTIN_POLICIES = ("expert", "expert_centre", "heuristic", "sensor", "sensor_grip", "sensor_fast", "sensor_sight[:<metres>]",
-                    "sensor_fast_sight[:<metres>]", "racer", "racer_bold", "random", "reference", "reference-td3", "reference_camera", "reference_racer")
+                    "sensor_fast_sight[:<metres>]", "racer", "racer_bold", "racer_safe[:<gamma>]", "random", "reference", "reference-td3", "reference_camera", "reference_racer")
 
 
 class PolicyError(ValueError):
@@ -754,8 +756,8 @@ class SensorDriver(Policy):
                  tc_width: float = 3.0, u_slide: float = 0.3, k_slide: float = 5.0, k_v: float = 0.1, sat: float = 0.9,
                  v_gain_free: float = 5.0, v_gain_axis: float = math.inf, v_gain_pos: float = 15.0,
                  pedal_ramp_ms: float = 1.0, decel_per_mu: float | None = None, sight_m: float | None = None,
-                 v_corner_ms: float = 0.0, k_corner: float | None = None, vehicle: str = "default",
-                 rangefinder_key: str = "rangefinder", state_key: str = "state") -> None:
+                 v_corner_ms: float = 0.0, k_corner: float | None = None, grip_exponent: float = 1.0,
+                 vehicle: str = "default", rangefinder_key: str = "rangefinder", state_key: str = "state") -> None:
         from torcsrl.envs.sensors import RANGEFINDER_ANGLES_DEG
         from torcsrl.envs.vehicle import VehicleParams
 
@@ -768,7 +770,9 @@ class SensorDriver(Policy):
                                  v_gain=(float(v_gain_free), float(v_gain_axis), float(v_gain_pos)), pedal_ramp_ms=float(pedal_ramp_ms),
                                  decel_per_mu=None if decel_per_mu is None else float(decel_per_mu),
                                  sight_m=math.inf if sight_m is None else float(sight_m), v_corner=float(v_corner_ms),
-                                 k_corner=None if k_corner is None else float(k_corner))
+                                 k_corner=None if k_corner is None else float(k_corner), grip_exponent=float(grip_exponent))
+        if not math.isfinite(float(grip_exponent)) or float(grip_exponent) < 1.0:
+            raise ValueError(f"SensorDriver grip_exponent must be a finite number >= 1 (1: braking in proportion to the grip), got {grip_exponent}")
         self.fingerprint = _code_fingerprint(SensorDriver, repr(sorted(vars(self.k).items())))  # code and gains
         if decel_per_mu is not None:
             if not math.isfinite(float(decel_per_mu)) or float(decel_per_mu) <= 0.0:
@@ -791,7 +795,7 @@ class SensorDriver(Policy):
         friction under the car, sets the braking it plans with when the driver is grip-aware (``decel_per_mu``);
         ``tp_target`` [trackPos units] is where across the road the centring term pulls (0: the axis)."""
         k, i = self.k, self._i
-        decel = k.decel if k.decel_per_mu is None or mu is None else k.decel_per_mu * float(mu)
+        decel = k.decel if k.decel_per_mu is None or mu is None else k.decel_per_mu * float(mu) ** k.grip_exponent
         v = float(st[i["speedX_kmh"]]) / 3.6
         beta = math.atan2(float(st[i["speedY_kmh"]]) / 3.6, max(v, 5.0))  # slip angle [rad]
         angle, tp = float(st[i["angle_rad"]]) + k.k_beta * beta, float(st[i["trackPos"]])
@@ -877,6 +881,10 @@ class SensorRacer(SensorDriver):
     #: training tracks, 5 laps against 3 experts at 85 %, 2026-11-27: 11/16 wins, 1.81 collisions a race; the default,
     #: cautious racer: 3/16 wins, 0.81 collisions a race).
     BOLD = {"bend_lanes": 1.0, "yield_alongside": False, "bend_m": -1000.0}
+    #: ``racer_safe[:<gamma>]``: ``racer_bold`` planning its braking with ``decel_per_mu * mu ** gamma`` — the same on
+    #: asphalt (mu = 1), a margin on low grip that grows as the grip falls (dirt, mu 0.6: 3.2 m/s^2 at gamma 2 against
+    #: 5.4 at gamma 1), so a student whose grip estimate runs high still brakes within the road's grip.
+    SAFE_GRIP_EXPONENT = 2.0
 
     def __init__(self, look_m: float = 60.0, full_m: float = 30.0, rear_m: float = 15.0, pass_gap_m: float = 3.8,
                  tp_max: float = 0.7, lane_m: float = 2.4, length_m: float = 4.5, lift_m: float = 10.0, lift_s: float = 0.8,
@@ -1047,6 +1055,18 @@ def load_policy(spec: str | Path | Policy) -> Policy:
     if s == "racer_bold":
         drv = SensorRacer(**SensorRacer.BOLD)
         drv.spec = drv.name = "racer_bold"
+        return drv
+    if s == "racer_safe" or s.startswith("racer_safe:"):
+        gamma = SensorRacer.SAFE_GRIP_EXPONENT
+        if ":" in s:
+            try:
+                gamma = float(s.split(":", 1)[1])
+            except ValueError:
+                raise PolicyError(f"{s!r}: the grip exponent after 'racer_safe:' must be a number >= 1, e.g. racer_safe:2") from None
+        if not math.isfinite(gamma) or gamma < 1.0:
+            raise PolicyError(f"{s!r}: the grip exponent after 'racer_safe:' must be a number >= 1 (1 is racer_bold), got {gamma:g}")
+        drv = SensorRacer(**SensorRacer.BOLD, grip_exponent=gamma)
+        drv.spec = drv.name = s
         return drv
     if s == "heuristic":
         return HeuristicPolicy()
