@@ -161,6 +161,33 @@ def test_racer_passes_lifts_and_brakes_from_its_opponents_sectors():
     assert racer.traffic(r, st, _sectors(s0=30.0)) == (0.0, 1.0)  # a car behind does not matter
 
 
+def test_safe_racer_brakes_as_the_bold_one_on_asphalt_and_earlier_on_low_grip():
+    import math
+
+    import numpy as np
+
+    from torcsrl.demos import DemoError, known_teacher, make_teacher
+    from torcsrl.policies import SensorRacer
+
+    bold, safe, safe15 = load_policy("racer_bold"), load_policy("racer_safe"), load_policy("racer_safe:1.5")
+    assert safe.k.grip_exponent == SensorRacer.SAFE_GRIP_EXPONENT == 2.0 and safe15.k.grip_exponent == 1.5
+    r = np.full(19, 80.0)  # walls 80 m ahead all round: a tight bend, the car at 40 km/h
+    _, st = _straight_road(speed_kmh=40.0)
+    assert safe.act(r, st, mu=1.0) == bold.act(r, st, mu=1.0)  # asphalt: the same driver
+    pedals = [p.act(r, st, mu=0.6)[1] for p in (bold, safe15, safe)]  # dirt: less pedal as gamma grows
+    assert pedals[0] > pedals[1] > pedals[2]
+    # it plans with 9 mu^gamma m/s^2: on dirt racer_safe is the bold racer told it brakes at 9 x 0.36
+    told = SensorRacer(**{**SensorRacer.BOLD, "decel_per_mu": 9.0 * 0.6 ** 2})
+    assert safe.act(r, st, mu=0.6) == pytest.approx(told.act(r, st, mu=1.0), abs=1e-12)
+    assert known_teacher("racer_safe") and known_teacher("racer_safe:1.5") and not known_teacher("racer_safer")
+    assert make_teacher("racer_safe:1.5").k.grip_exponent == 1.5
+    for bad, msg in (("racer_safe:x", "must be a number"), ("racer_safe:0.5", ">= 1")):
+        with pytest.raises(PolicyError, match=msg):
+            load_policy(bad)
+        with pytest.raises(DemoError, match=msg):
+            make_teacher(bad)
+
+
 def test_racer_overtakes_a_slow_car_that_the_blind_teacher_runs_into(tmp_path):
     """A real 2-car race on the oval from the back of the grid against a car at 50 km/h on the centre line: the racer
     passes it without contact; sensor_fast (the same driving, no opponents sensor) hits it. The slow car is blind to a
