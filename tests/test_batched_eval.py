@@ -45,6 +45,41 @@ def test_row_actor_equals_the_one_car_policy_row_for_row():
     assert not torch.equal(pol._act(*(obs[k] for k in pol.obs_keys)), one)
 
 
+def test_row_actor_keeps_each_rows_history_and_grip_estimate_as_the_one_car_policy():
+    """The shipped racer keeps 3 s of its state (state_history=30), estimates the grip from it and drives on the newest
+    1 s: a batch of 5 rows, two of which restart mid-way, gives each row the actions of its own one-car policy."""
+    pol = load_policy("reference_racer")
+    assert pol.state_history > 1 and pol.actor.grip_head is not None and pol.actor._selects and supports_batch(pol)
+    g = torch.Generator().manual_seed(0)
+    batch, ones = RowActor(pol), [load_policy("reference_racer") for _ in range(5)]
+    for t in range(8):
+        obs = {k: torch.rand(5, *s, generator=g) * 60 for k, s in pol.obs_shapes.items()}
+        if t == 5:  # rows 1 and 3 start new episodes
+            batch.forget([1, 3])
+            ones[1].reset()
+            ones[3].reset()
+        rows = batch(obs)
+        one = torch.stack([p._act(*(obs[k][i] for k in p.obs_keys)) for i, p in enumerate(ones)])
+        assert torch.equal(rows, one), t
+    # the history matters: a row that forgets its readings acts otherwise on the same observation
+    obs = {k: torch.rand(5, *s, generator=g) * 60 for k, s in pol.obs_shapes.items()}
+    before = batch(obs)
+    batch.forget([0])
+    assert not torch.equal(batch(obs)[0], before[0])
+
+
+def test_a_stateful_racer_drives_batched_cells_as_one_car_at_a_time():
+    """reference_racer (history + grip head) in groups of 2 cars that restart for the next cell: the one-car rows."""
+    pol = load_policy("reference_racer")
+    degs = [None, "state.noise@3", "rangefinder.dropout@2"]
+    kw = dict(episodes=2, laps=1, seed=5, max_steps=60, env_kwargs={"start": "random"})
+    batched = run_batch(pol, "rallycross", None, degs, max_cars=2, **kw)
+    for d, rows_b in zip(degs, batched):
+        rows_a, _ = run_cell(pol, "rallycross", None, d, **kw)
+        assert _diff(rows_a, rows_b) == [], d
+    assert batched[1][0]["return"] != batched[0][0]["return"]
+
+
 @pytest.mark.parametrize("start,max_cars", [("grid", None), ("random", None), ("random", 4)])
 def test_batched_cells_equal_the_one_car_path(start, max_cars):
     """Clean, step noise, episode faults, a temporal fault and a weather preset; 2 episodes each: 12 cars at once, or

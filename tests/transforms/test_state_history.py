@@ -47,7 +47,7 @@ def test_the_training_env_and_the_checkpoints_own_history_agree_across_a_reset(t
     assert pol.meta["obs_layout"] == "rangefinder:19,state:44" and pol.meta["pipeline"]["state_history"] == 4
     from torcsrl.evaluate.batched import supports_batch
 
-    assert not supports_batch(pol)  # it keeps readings between steps: the report drives it one car per env
+    assert supports_batch(pol)  # the report's RowActor keeps each car's readings (tests/test_batched_eval.py)
     last = assert_policy_history_matches_training_env(pol, cfg, 9, action=lambda t: (0.1 * (t % 3 - 1), 0.8))
     assert not torch.equal(last["state"][:11], last["state"][-11:])  # the history holds different readings
 

@@ -46,8 +46,8 @@ them); the seeds, and with them common random numbers, are unaffected. And when 
 walk that locates a car on its track fails for one car (far off the road), ``RaceCore`` locates every
 car of that step by the vectorised projection, which may differ from the walk in the last bits.
 
-Supported policies: checkpoint actors on vector observations (rangefinder, state), which is what a
-robustness grid drives thousands of times. Others (the expert, scripted drivers, the random
+Supported policies: checkpoint actors on vector observations (rangefinder, state, opponents; with a state
+history and a grip head too), which is what a robustness grid drives thousands of times. Others (the expert, scripted drivers, the random
 baseline, camera actors) drive one car at a time through :func:`run_cell`
 (:func:`supports_batch` says which).
 """
@@ -101,26 +101,32 @@ class _PerCarDraws:
 
 
 def supports_batch(policy: Policy) -> bool:
-    """True when ``policy`` can drive a batch and stay equal to its one-car self: a stateless checkpoint
-    actor (:class:`~torcsrl.nets.DeterministicActor`) on vector observations only (no ``state_history``: a policy
-    that keeps readings between steps drives one car per env)."""
+    """True when ``policy`` can drive a batch and stay equal to its one-car self: a checkpoint actor
+    (:class:`~torcsrl.nets.DeterministicActor`, with or without a grip head) on vector observations only, a
+    ``state_history`` included (:class:`RowActor` keeps each row's readings and restarts them with its group)."""
     from torcsrl.nets import DeterministicActor
     from torcsrl.policies import CheckpointPolicy
 
     return (isinstance(policy, CheckpointPolicy) and type(policy.actor) is DeterministicActor
-            and not policy.actor.encoder.img_keys and not policy._vec_stacked and type(policy).__call__ is CheckpointPolicy.__call__)
+            and not policy.actor.encoder.img_keys and not policy._stacked and type(policy).__call__ is CheckpointPolicy.__call__)
 
 
 def row_linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
     """``F.linear(x, weight, bias)`` for ``x [B, in]`` computed one row at a time (one ``baddbmm``),
-    so that row ``i`` has the bits ``F.linear(x[i:i+1], weight, bias)`` has, whatever ``B``."""
+    so that row ``i`` has the bits ``F.linear(x[i:i+1], weight, bias)`` has, whatever ``B``. A layer with ONE output (a
+    grip head's last) is a dot product per row, whose summation order no batched kernel reproduces: one call a row."""
     b = x.shape[0]
+    if weight.shape[0] == 1:
+        return torch.stack([F.linear(x[i], weight, bias) for i in range(b)])
     wt = weight.t()
     return torch.baddbmm(bias.expand(b, 1, -1), x.unsqueeze(1), wt.expand(b, *wt.shape)).squeeze(1)
 
 
 class RowActor:
-    """A checkpoint policy's deterministic actor on a batch, row for row equal to the one-car policy."""
+    """A checkpoint policy's deterministic actor on a batch, row for row equal to the one-car policy: its observation
+    scaling, its state history (each row's last ``state_history`` readings, restarted by :meth:`forget` as a one-car
+    policy's by ``reset``), its grip head and input selections (:meth:`DeterministicActor.act`), every linear layer one
+    row at a time (:func:`row_linear`)."""
 
     def __init__(self, policy: Policy) -> None:
         if not supports_batch(policy):
@@ -129,20 +135,56 @@ class RowActor:
         self.actor = policy.actor
         self.keys = tuple(policy.obs_keys)
         self.div = dict(policy.obs_divisors)
+        self.history_keys = tuple(policy._vec_stacked)
+        self.k = int(policy.state_history)
+        self._history: dict[str, torch.Tensor] = {}
+        self._fresh: list[int] = []
+
+    def forget(self, rows: Sequence[int]) -> None:
+        """Rows that start a new episode: at the next call their histories repeat their first reading."""
+        self._fresh = sorted(set(self._fresh) | {int(r) for r in rows})
+
+    def _stack(self, k: str, x: torch.Tensor, fresh: list[int]) -> torch.Tensor:
+        from torcsrl.transforms import stack_frames
+
+        prev = self._history.get(k)
+        if prev is not None and prev.shape[0] != x.shape[0]:
+            raise ValueError(f"RowActor: {x.shape[0]} rows of {k!r}, its history has {prev.shape[0]}; call forget_all() for a new batch")
+        stack = stack_frames(prev, x, self.k, dim=-1)
+        if fresh and prev is not None:
+            stack[fresh] = stack_frames(None, x[fresh], self.k, dim=-1)
+        self._history[k] = stack
+        return stack
+
+    def forget_all(self) -> None:
+        """Every row starts a new episode (a new batch)."""
+        self._history, self._fresh = {}, []
 
     @torch.no_grad()
     def __call__(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
         act = self.actor
-        x = act.encoder(*(obs[k] / self.div[k] if k in self.div else obs[k] for k in self.keys))
-        *hidden, last = act._linears()
-        if x.shape[0] == 1:  # one car: exactly the one-car policy's kernels
-            for lin in hidden:
-                x = F.linear(x, lin.weight, lin.bias).relu_()
-            a = torch.tanh(F.linear(x, last.weight, last.bias))
-        else:
-            for lin in hidden:
-                x = row_linear(x, lin.weight, lin.bias).relu_()
-            a = torch.tanh(row_linear(x, last.weight, last.bias))
+        xs = [obs[k] / self.div[k] if k in self.div else obs[k] for k in self.keys]
+        if self.history_keys:
+            fresh, self._fresh = self._fresh, []
+            xs = [self._stack(k, x, fresh) if k in self.history_keys else x for k, x in zip(self.keys, xs)]
+        x = act.encoder(*xs)
+        lin = F.linear if x.shape[0] == 1 else row_linear  # one car: exactly the one-car policy's kernels
+
+        def mlp(layers: Sequence[torch.nn.Linear], h: torch.Tensor, last_act: bool) -> torch.Tensor:
+            *hidden, out = layers
+            for layer in hidden:
+                h = lin(h, layer.weight, layer.bias).relu_()
+            h = lin(h, out.weight, out.bias)
+            return torch.tanh(h) if last_act else h
+
+        if act.grip_head is not None:
+            gx = x if act._grip_inputs is None else x.index_select(-1, act._grip_inputs)
+            grip = mlp([m for m in act.grip_head if isinstance(m, torch.nn.Linear)], gx, False)
+        if act._selects:
+            x = x.index_select(-1, act._policy_inputs)
+        if act.grip_head is not None:
+            x = torch.cat([x, grip.to(x.dtype)], -1)
+        a = mlp(act._linears(), x, True)
         return a if act._unit else act.a_mid + act.a_half * a
 
 
@@ -278,6 +320,8 @@ def run_batch(policy: Policy, track: str, surface: str | None, degradations: Seq
                     start(g)
                     restart.append(g)
             fresh = reset(restart, full=False) if restart else None
+            if restart:  # a stateful policy's readings restart with the episodes
+                actor.forget([i for g in restart for i in range(spans[g].start, spans[g].stop)])
             fresh = {k: fresh.get(k) for k in sensors} if fresh is not None else None
             src = {k: nxt.get(k) for k in sensors}
             views = [view(fresh, g, True) if g in restart else
