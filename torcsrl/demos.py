@@ -46,13 +46,14 @@ EXTRA_KEYS = ("expert_action", "privileged")
 PRIVILEGED_SLOTS: tuple[str, ...] = tuple(f"track_{i}" for i in range(19)) + ("angle", "trackPos", "surfaceMu")
 #: Teachers that label demonstrations (:func:`make_teacher`).
 TEACHERS = ("expert", "expert_centre", "sensor", "sensor_grip", "sensor_fast", "racer", "racer_bold", "racer_safe[:<gamma>]",
-            "sensor_sight[:<metres>]", "sensor_fast_sight[:<metres>]")
+            "racer_clean[:<gamma>]", "sensor_sight[:<metres>]", "sensor_fast_sight[:<metres>]")
 
 
 def known_teacher(name: str) -> bool:
     """Whether ``name`` is one of :data:`TEACHERS` (``sensor_sight:<metres>`` / ``sensor_fast_sight:<metres>`` with any
-    number, ``racer_safe:<gamma>``)."""
-    return name in TEACHERS[:-3] or any(name == b or name.startswith(b + ":") for b in ("racer_safe", "sensor_sight", "sensor_fast_sight"))
+    number, ``racer_safe:<gamma>``, ``racer_clean:<gamma>``)."""
+    return name in TEACHERS[:-4] or any(name == b or name.startswith(b + ":")
+                                        for b in ("racer_safe", "racer_clean", "sensor_sight", "sensor_fast_sight"))
 
 
 class DemoError(ValueError):
@@ -106,15 +107,16 @@ def make_teacher(name: str):
         return SensorRacer(rangefinder_key="rangefinder_clean", state_key="state_clean", opponents_key="opponents_clean", **bold)
     from torcsrl.policies import PolicyError, _sight_teacher, load_policy
 
-    if name == "racer_safe" or name.startswith("racer_safe:"):  # racer_bold with a margin on low grip
+    if any(name == b or name.startswith(b + ":") for b in ("racer_safe", "racer_clean")):  # racer_bold, a low-grip margin
         from torcsrl.policies import SensorRacer
 
         try:
-            gamma = load_policy(name).k.grip_exponent  # the spec's one-line checks
+            drv = load_policy(name)  # the spec's one-line checks
         except PolicyError as err:
             raise DemoError(f"demos.teacher={err}") from None
+        gains = SensorRacer.CLEAN if name.startswith("racer_clean") else SensorRacer.BOLD
         return SensorRacer(rangefinder_key="rangefinder_clean", state_key="state_clean", opponents_key="opponents_clean",
-                           grip_exponent=gamma, **SensorRacer.BOLD)
+                           grip_exponent=drv.k.grip_exponent, **gains)
 
     try:
         sight = _sight_teacher(name, rangefinder_key="rangefinder_clean", state_key="state_clean")

@@ -30,6 +30,7 @@ spec                          policy
 ``racer_bold``                the same with ``SensorRacer.BOLD`` (passes more, collides more)
 ``racer_safe[:<gamma>]``      ``racer_bold`` braking at ``9 mu^gamma`` m/s^2 (gamma 2): as bold on asphalt,
                               a margin on low grip
+``racer_clean[:<gamma>]``     ``racer_safe`` with a 1.5-lane following corridor near bends (fewer contacts)
 ``heuristic``                 a sensor-only driver in the style of the TORCS SCR sample robot:
                               steers from ``angle`` / ``trackPos`` and the longest rangefinder
                               beam, picks its speed from the free distance ahead
@@ -108,7 +109,7 @@ REFERENCE_CAMERA_POLICY = Path(__file__).resolve().parent / "assets" / "referenc
 REFERENCE_RACER_POLICY = Path(__file__).resolve().parent / "assets" / "reference_racer.pt"
 #: Names of the built-in policies (anything else is a checkpoint path).
 BUILTIN_POLICIES = ("expert", "expert_centre", "heuristic", "sensor", "sensor_grip", "sensor_fast", "sensor_sight[:<metres>]",
-                    "sensor_fast_sight[:<metres>]", "racer", "racer_bold", "racer_safe[:<gamma>]", "random", "reference", "reference-td3", "reference_camera", "reference_racer")
+                    "sensor_fast_sight[:<metres>]", "racer", "racer_bold", "racer_safe[:<gamma>]", "racer_clean[:<gamma>]", "random", "reference", "reference-td3", "reference_camera", "reference_racer")
 
 
 class PolicyError(ValueError):
@@ -885,12 +886,18 @@ class SensorRacer(SensorDriver):
     #: asphalt (mu = 1), a margin on low grip that grows as the grip falls (dirt, mu 0.6: 3.2 m/s^2 at gamma 2 against
     #: 5.4 at gamma 1), so a student whose grip estimate runs high still brakes within the road's grip.
     SAFE_GRIP_EXPONENT = 2.0
+    #: ``racer_clean[:<gamma>]``: ``racer_safe`` whose following corridor near a bend (and while it brakes) is 1.5 lanes
+    #: wide: a car ahead on the racing line turns in across part of the inside. Races on the training tracks (5 laps,
+    #: 3 experts at pace drawn from [0.83, 0.87], 3 races a track, seed 0; 2026-11-27): 22/24 finished, 17/24 wins,
+    #: 0.75 collisions a race (racer_bold: 21/24, 16/24, 1.08; yielding to a car alongside: 23/24, 18/24, 1.17;
+    #: holding its lane while a car is within 30 m, ``hold_lane``: 24/24, 19/24, 1.08).
+    CLEAN = {**BOLD, "bend_lanes": 1.5}
 
     def __init__(self, look_m: float = 60.0, full_m: float = 30.0, rear_m: float = 15.0, pass_gap_m: float = 3.8,
                  tp_max: float = 0.7, lane_m: float = 2.4, length_m: float = 4.5, lift_m: float = 10.0, lift_s: float = 0.8,
                  brake_m: float = 6.0, brake_s: float = 0.5, brake: float = 1.0, pass_radius_m: float = 120.0,
-                 bend_m: float = 50.0, bend_lanes: float = 2.5, yield_alongside: bool = True, opponents_key: str = "opponents",
-                 **kw: Any) -> None:
+                 bend_m: float = 50.0, bend_lanes: float = 2.5, yield_alongside: bool = True, hold_lane: bool = False,
+                 opponents_key: str = "opponents", **kw: Any) -> None:
         from torcsrl.envs.traffic import OPPONENT_RANGE_M, OPPONENT_SECTORS
 
         super().__init__(**{**SensorDriver.FAST, **kw})
@@ -902,7 +909,7 @@ class SensorRacer(SensorDriver):
         self.race = SimpleNamespace(look_m=look_m, full_m=full_m, rear_m=rear_m, pass_gap_m=pass_gap_m, tp_max=tp_max,
                                     lane_m=lane_m, length_m=length_m, lift_m=lift_m, lift_s=lift_s, brake_m=brake_m, brake_s=brake_s,
                                     brake=brake, pass_radius_m=pass_radius_m, bend_m=bend_m, bend_lanes=bend_lanes,
-                                    yield_alongside=bool(yield_alongside))
+                                    yield_alongside=bool(yield_alongside), hold_lane=bool(hold_lane))
         self.fingerprint = _code_fingerprint(SensorDriver, SensorRacer, repr(sorted(vars(self.k).items())),
                                              repr(sorted(vars(self.race).items())))
         phi = np.radians(175.0 - 10.0 * np.arange(OPPONENT_SECTORS))
@@ -950,6 +957,8 @@ class SensorRacer(SensorDriver):
                 xi = float(x[i])
                 wt = (q.look_m - xi) / (q.look_m - q.full_m) if xi >= 0.0 else (xi + q.rear_m) / q.rear_m
                 target = min(1.0, max(0.0, wt)) * aim
+            elif q.hold_lane and (np.abs(x[near]) < q.full_m).any():  # not passing, a car close: keep the lane it is in
+                target = max(-q.tp_max, min(q.tp_max, tp))
         cap = 1.0
         braking = braking or bend_near
         lift, brake = q.lift_m + q.lift_s * v, q.brake_m + q.brake_s * v  # [m]
@@ -1056,18 +1065,19 @@ def load_policy(spec: str | Path | Policy) -> Policy:
         drv = SensorRacer(**SensorRacer.BOLD)
         drv.spec = drv.name = "racer_bold"
         return drv
-    if s == "racer_safe" or s.startswith("racer_safe:"):
-        gamma = SensorRacer.SAFE_GRIP_EXPONENT
-        if ":" in s:
-            try:
-                gamma = float(s.split(":", 1)[1])
-            except ValueError:
-                raise PolicyError(f"{s!r}: the grip exponent after 'racer_safe:' must be a number >= 1, e.g. racer_safe:2") from None
-        if not math.isfinite(gamma) or gamma < 1.0:
-            raise PolicyError(f"{s!r}: the grip exponent after 'racer_safe:' must be a number >= 1 (1 is racer_bold), got {gamma:g}")
-        drv = SensorRacer(**SensorRacer.BOLD, grip_exponent=gamma)
-        drv.spec = drv.name = s
-        return drv
+    for base, gains in (("racer_safe", SensorRacer.BOLD), ("racer_clean", SensorRacer.CLEAN)):
+        if s == base or s.startswith(base + ":"):
+            gamma = SensorRacer.SAFE_GRIP_EXPONENT
+            if ":" in s:
+                try:
+                    gamma = float(s.split(":", 1)[1])
+                except ValueError:
+                    raise PolicyError(f"{s!r}: the grip exponent after '{base}:' must be a number >= 1, e.g. {base}:2") from None
+            if not math.isfinite(gamma) or gamma < 1.0:
+                raise PolicyError(f"{s!r}: the grip exponent after '{base}:' must be a number >= 1 (1: braking in proportion to the grip), got {gamma:g}")
+            drv = SensorRacer(**gains, grip_exponent=gamma)
+            drv.spec = drv.name = s
+            return drv
     if s == "heuristic":
         return HeuristicPolicy()
     if s == "sensor":
