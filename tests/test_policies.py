@@ -188,6 +188,37 @@ def test_safe_racer_brakes_as_the_bold_one_on_asphalt_and_earlier_on_low_grip():
             make_teacher(bad)
 
 
+def test_clean_racer_widens_its_following_corridor_near_bends_and_hold_lane_keeps_its_lane():
+    import numpy as np
+
+    from torcsrl.demos import known_teacher, make_teacher
+    from torcsrl.envs.sensors import RANGEFINDER_ANGLES_DEG, STATE_SLOTS
+    from torcsrl.policies import SensorRacer
+
+    clean, bold = load_policy("racer_clean"), load_policy("racer_bold")
+    assert clean.race.bend_lanes == 1.5 and clean.k.grip_exponent == 2.0 and load_policy("racer_clean:1.5").k.grip_exponent == 1.5
+    assert known_teacher("racer_clean:1.5") and make_teacher("racer_clean").race.bend_lanes == 1.5
+    with pytest.raises(PolicyError, match="racer_clean:"):
+        load_policy("racer_clean:fast")
+    r, st = _straight_road(speed_kmh=72.0)
+    # braking for a bend with a car 12 m away, 3.1 m right of its path (sector 19: -15 deg; outside one lane of 2.4 m,
+    # inside 1.5 lanes): the bold racer keeps its pedal, the clean one brakes
+    opp = _sectors(s19=12.0)
+    y = 12.0 * np.sin(np.radians(-15.0))
+    assert 2.4 < abs(y) < 1.5 * 2.4
+    assert bold.traffic(r, st, opp, braking=True)[1] == 1.0 and clean.traffic(r, st, opp, braking=True)[1] < 0.0
+    # hold_lane: not passing (a bend ahead: the farthest free point 30 deg off the heading), a car within 30 m:
+    # it aims where it is rather than at the axis
+    ang = np.asarray(RANGEFINDER_ANGLES_DEG)
+    r = r.copy()
+    r[np.argsort(np.abs(ang))[:3]] = 40.0
+    r[int(np.argmin(np.abs(ang - 30.0)))] = 100.0
+    st[STATE_SLOTS.index("trackPos")] = 0.3
+    hold = SensorRacer(**{**SensorRacer.BOLD, "hold_lane": True})
+    assert bold.traffic(r, st, _sectors(s17=20.0))[0] == 0.0 and hold.traffic(r, st, _sectors(s17=20.0))[0] == pytest.approx(0.3)
+    assert hold.traffic(r, st, _sectors(s18=50.0))[0] == 0.0  # a car 50 m ahead: no need
+
+
 def test_racer_overtakes_a_slow_car_that_the_blind_teacher_runs_into(tmp_path):
     """A real 2-car race on the oval from the back of the grid against a car at 50 km/h on the centre line: the racer
     passes it without contact; sensor_fast (the same driving, no opponents sensor) hits it. The slow car is blind to a
