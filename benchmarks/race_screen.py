@@ -1,0 +1,114 @@
+"""The racer selection screen (issue #20) as one command: races on TRAINING tracks, a table with the eligibility.
+
+    python benchmarks/race_screen.py --policy A.pt B.pt reference_racer [--episodes 3] [--workers 2] [--out DIR]
+
+Each policy races 3 scripted experts, 5 laps from the grid, on ``set:train`` and ``gen-10001..10003`` (the training
+seed range), ``--episodes`` races a track, each opponent's pace drawn per race from ``--pace`` ([0.83, 0.87]: around
+the issue's 85 %, so that every race is its own scenario — at one pace the races of a track come from at most K + 1
+grid slots; the ``scenarios`` column counts the distinct ones). It prints, per policy, races finished, wins,
+collisions a race, scenarios and whether it is eligible: ``--min-finished`` / ``--min-wins`` of the races (0.75 / 0.5)
+and at most ``--max-collisions`` a race (1.0) — the issue's two race goals on training tracks, and finishing. This is
+the race screen the shipped racers were chosen on (2026-11-27, ``torcsrl/assets/reference_racer.md``); pair it with
+``python benchmarks/generalisation.py --screen --laps 10 --surfaces asphalt dirt`` (solo, no forgetting).
+
+Selection happens on training tracks only: a held-out track (``set:heldout``, a bundled held-out track or a generated
+track of the held-out seed range) is refused in one line; measure those once, after the choice, with
+``python -m torcsrl.evaluate mode=race tracks=set:heldout``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+TRAIN_RACE_TRACKS = ("set:train", "gen-10001", "gen-10002", "gen-10003")
+
+
+def heldout_tracks(names: list[str]) -> list[str]:
+    """The names in ``names`` that are held-out: bundled ``set:heldout`` tracks or generated tracks of the held-out
+    seed range (:data:`torcsrl.envs.tracks.procedural.HELDOUT_SEEDS`)."""
+    import re
+
+    from torcsrl.envs import tracks
+    from torcsrl.envs.tracks.procedural import HELDOUT_SEEDS
+
+    held = set(tracks.track_sets().get("heldout", []))
+    out = []
+    for n in names:
+        m = re.fullmatch(r"(?:gen|proc)-(\d+)(?:@.*)?", n)
+        if n in held or (m and HELDOUT_SEEDS[0] <= int(m.group(1)) < HELDOUT_SEEDS[1]):
+            out.append(n)
+    return out
+
+
+def screen(policies: list[str], tracks: list[str], *, episodes: int = 3, pace: tuple[float, float] = (0.83, 0.87),
+           laps: int = 5, opponents: int = 3, seed: int = 0, workers: int = 1, out: str | None = None) -> list[dict]:
+    """One summary per policy: ``{"policy", "races", "finished", "wins", "collisions_per_race", "scenarios", "wall_s"}``."""
+    from torcsrl.envs import tracks as _tracks
+    from torcsrl.evaluate.race import evaluate_race
+
+    names = _tracks.resolve(list(tracks))
+    bad = heldout_tracks(names)
+    if bad:
+        raise SystemExit(f"race_screen: {', '.join(bad)} {'is a held-out track' if len(bad) == 1 else 'are held-out tracks'}; "
+                         f"a selection screen drives training tracks only (default {' '.join(TRAIN_RACE_TRACKS)})")
+    rows = []
+    for spec in policies:
+        t0 = time.perf_counter()
+        res = evaluate_race(spec, names, laps=laps, seed=seed, episodes=episodes, opponents=opponents, pace=list(pace),
+                            workers=workers, plots=out is not None, verbose=False,
+                            out_dir=None if out is None else Path(out) / Path(str(spec)).stem)
+        eps = res["episodes"]
+        n = len(eps)
+        rows.append({"policy": str(spec), "races": n, "finished": sum(bool(e["finished"]) for e in eps),
+                     "wins": sum(bool(e["win"]) for e in eps), "collisions_per_race": sum(e["collisions"] for e in eps) / max(n, 1),
+                     "scenarios": len({(e.get("start_position"), tuple(e.get("opponent_paces") or ()),
+                                        e["track"]) for e in eps}),
+                     "wall_s": time.perf_counter() - t0})
+    return rows
+
+
+def eligible(row: dict, min_finished: float, min_wins: float, max_collisions: float) -> bool:
+    n = row["races"]
+    return row["finished"] >= min_finished * n and row["wins"] >= min_wins * n and row["collisions_per_race"] <= max_collisions
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--policy", nargs="+", required=True, help="checkpoints, run folders, built-in drivers (racer_bold, ...)")
+    ap.add_argument("--tracks", nargs="+", default=list(TRAIN_RACE_TRACKS))
+    ap.add_argument("--episodes", type=int, default=3, help="races a track")
+    ap.add_argument("--pace", type=float, nargs=2, default=(0.83, 0.87), help="each opponent's pace drawn per race from [lo, hi]")
+    ap.add_argument("--laps", type=int, default=5)
+    ap.add_argument("--opponents", type=int, default=3)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--workers", type=int, default=1)
+    ap.add_argument("--min-finished", type=float, default=0.75, help="share of the races finished to be eligible")
+    ap.add_argument("--min-wins", type=float, default=0.5, help="share of the races won to be eligible")
+    ap.add_argument("--max-collisions", type=float, default=1.0, help="collisions a race to be eligible")
+    ap.add_argument("--out", default=None, help="write each policy's race tables and plots under OUT/<policy>")
+    a = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    rows = screen(a.policy, a.tracks, episodes=a.episodes, pace=tuple(a.pace), laps=a.laps, opponents=a.opponents,
+                  seed=a.seed, workers=a.workers, out=a.out)
+    print(f"race screen: {' '.join(a.tracks)}, {a.laps} laps against {a.opponents} experts at pace "
+          f"[{a.pace[0]:g}, {a.pace[1]:g}], {a.episodes} races a track, seed {a.seed}")
+    print("| policy | races | finished | wins | collisions / race | scenarios | eligible | wall [s] |")
+    print("|---|---:|---:|---:|---:|---:|---|---:|")
+    for r in rows:
+        ok = eligible(r, a.min_finished, a.min_wins, a.max_collisions)
+        print(f"| {r['policy']} | {r['races']} | {r['finished']} | {r['wins']} | {r['collisions_per_race']:.2f} | "
+              f"{r['scenarios']} | {'yes' if ok else 'no'} | {r['wall_s']:.0f} |")
+    print(f"eligible: finished >= {a.min_finished:g}, wins >= {a.min_wins:g} of the races, <= {a.max_collisions:g} "
+          "collisions a race")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
