@@ -145,20 +145,15 @@ class RowActor:
         self._fresh = sorted(set(self._fresh) | {int(r) for r in rows})
 
     def _stack(self, k: str, x: torch.Tensor, fresh: list[int]) -> torch.Tensor:
+        """Row for row what :meth:`CheckpointPolicy._act` keeps: the last ``state_history`` readings of ``k``."""
         from torcsrl.transforms import stack_frames
 
         prev = self._history.get(k)
-        if prev is not None and prev.shape[0] != x.shape[0]:
-            raise ValueError(f"RowActor: {x.shape[0]} rows of {k!r}, its history has {prev.shape[0]}; call forget_all() for a new batch")
         stack = stack_frames(prev, x, self.k, dim=-1)
         if fresh and prev is not None:
             stack[fresh] = stack_frames(None, x[fresh], self.k, dim=-1)
         self._history[k] = stack
         return stack
-
-    def forget_all(self) -> None:
-        """Every row starts a new episode (a new batch)."""
-        self._history, self._fresh = {}, []
 
     @torch.no_grad()
     def __call__(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
