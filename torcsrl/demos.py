@@ -105,19 +105,14 @@ def make_teacher(name: str):
 
         bold = SensorRacer.BOLD if name == "racer_bold" else {}
         return SensorRacer(rangefinder_key="rangefinder_clean", state_key="state_clean", opponents_key="opponents_clean", **bold)
-    from torcsrl.policies import PolicyError, _sight_teacher, load_policy
+    from torcsrl.policies import PolicyError, SensorRacer, _sight_teacher, racer_gains
 
-    if any(name == b or name.startswith(b + ":") for b in ("racer_safe", "racer_clean")):  # racer_bold, a low-grip margin
-        from torcsrl.policies import SensorRacer
-
-        try:
-            drv = load_policy(name)  # the spec's one-line checks
-        except PolicyError as err:
-            raise DemoError(f"demos.teacher={err}") from None
-        gains = SensorRacer.CLEAN if name.startswith("racer_clean") else SensorRacer.BOLD
-        return SensorRacer(rangefinder_key="rangefinder_clean", state_key="state_clean", opponents_key="opponents_clean",
-                           grip_exponent=drv.k.grip_exponent, **gains)
-
+    try:
+        racer = racer_gains(name)  # racer_safe / racer_clean: racer_bold with a low-grip margin
+    except PolicyError as err:
+        raise DemoError(f"demos.teacher={err}") from None
+    if racer is not None:
+        return SensorRacer(rangefinder_key="rangefinder_clean", state_key="state_clean", opponents_key="opponents_clean", **racer)
     try:
         sight = _sight_teacher(name, rangefinder_key="rangefinder_clean", state_key="state_clean")
     except PolicyError as err:

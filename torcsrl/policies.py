@@ -1043,6 +1043,24 @@ def _sight_teacher(name: str, **keys: str) -> SensorDriver | None:
     return None
 
 
+def racer_gains(name: str) -> dict[str, Any] | None:
+    """The :class:`SensorRacer` gains of ``racer_safe[:<gamma>]`` / ``racer_clean[:<gamma>]`` (``SensorRacer.BOLD`` /
+    ``CLEAN`` with ``grip_exponent``), None for other names; :class:`PolicyError` (one line) for a bad exponent."""
+    for base, gains in (("racer_safe", SensorRacer.BOLD), ("racer_clean", SensorRacer.CLEAN)):
+        if name == base or name.startswith(base + ":"):
+            gamma = SensorRacer.SAFE_GRIP_EXPONENT
+            if ":" in name:
+                try:
+                    gamma = float(name.split(":", 1)[1])
+                except ValueError:
+                    raise PolicyError(f"{name!r}: the grip exponent after '{base}:' must be a number >= 1, e.g. {base}:2") from None
+            if not math.isfinite(gamma) or gamma < 1.0:
+                raise PolicyError(f"{name!r}: the grip exponent after '{base}:' must be a number >= 1 (1: braking in proportion "
+                                  f"to the grip), got {gamma:g}")
+            return {**gains, "grip_exponent": gamma}
+    return None
+
+
 def is_ensemble_spec(spec: str | Path) -> bool:
     """Whether ``spec`` names an ensemble of checkpoints (``a.pt+b.pt[+...][@reduce]``; a file whose name has a ``+``
     is still a file)."""
@@ -1065,19 +1083,11 @@ def load_policy(spec: str | Path | Policy) -> Policy:
         drv = SensorRacer(**SensorRacer.BOLD)
         drv.spec = drv.name = "racer_bold"
         return drv
-    for base, gains in (("racer_safe", SensorRacer.BOLD), ("racer_clean", SensorRacer.CLEAN)):
-        if s == base or s.startswith(base + ":"):
-            gamma = SensorRacer.SAFE_GRIP_EXPONENT
-            if ":" in s:
-                try:
-                    gamma = float(s.split(":", 1)[1])
-                except ValueError:
-                    raise PolicyError(f"{s!r}: the grip exponent after '{base}:' must be a number >= 1, e.g. {base}:2") from None
-            if not math.isfinite(gamma) or gamma < 1.0:
-                raise PolicyError(f"{s!r}: the grip exponent after '{base}:' must be a number >= 1 (1: braking in proportion to the grip), got {gamma:g}")
-            drv = SensorRacer(**gains, grip_exponent=gamma)
-            drv.spec = drv.name = s
-            return drv
+    kw = racer_gains(s)
+    if kw is not None:
+        drv = SensorRacer(**kw)
+        drv.spec = drv.name = s
+        return drv
     if s == "heuristic":
         return HeuristicPolicy()
     if s == "sensor":
