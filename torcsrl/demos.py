@@ -50,10 +50,16 @@ TEACHERS = ("expert", "expert_centre", "sensor", "sensor_grip", "sensor_fast", "
 
 
 def known_teacher(name: str) -> bool:
-    """Whether ``name`` is one of :data:`TEACHERS` (``sensor_sight:<metres>`` / ``sensor_fast_sight:<metres>`` with any
-    number, ``racer_safe:<gamma>``, ``racer_clean:<gamma>``)."""
-    return name in TEACHERS[:-4] or any(name == b or name.startswith(b + ":")
-                                        for b in ("racer_safe", "racer_clean", "sensor_sight", "sensor_fast_sight"))
+    """Whether ``name`` is one of :data:`TEACHERS`: a plain name as listed, or a parametrised one (``racer_safe[:<gamma>]``
+    listed) bare or with any ``:<value>`` (the value is checked where the teacher is built)."""
+    base = name.split(":", 1)[0]
+    for t in TEACHERS:
+        if "[:" in t:
+            if base == t.split("[", 1)[0]:
+                return True
+        elif name == t:
+            return True
+    return False
 
 
 class DemoError(ValueError):

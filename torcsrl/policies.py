@@ -376,10 +376,8 @@ class CheckpointPolicy(Policy):
                 if k not in self._stacked and k not in self._vec_stacked:
                     continue
                 kk, dim = (self.frame_stack, -3) if k in self._stacked else (self.state_history, -1)
-                stack = stack_frames(self._history.get(k), obs[i], kk, dim=dim)
-                if fresh and self._history.get(k) is not None:  # rows that restarted: K copies of their first frame
-                    stack[fresh] = stack_frames(None, obs[i][fresh], kk, dim=dim)
-                obs[i] = self._history[k] = stack
+                # rows that restarted: K copies of their first frame
+                obs[i] = self._history[k] = stack_frames(self._history.get(k), obs[i], kk, dim=dim, restart=fresh)
         return self.actor(*obs)
 
     @torch.no_grad()

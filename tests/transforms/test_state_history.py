@@ -26,6 +26,8 @@ def test_stack_frames_along_the_last_dim_keeps_the_newest_reading_last():
     h = stack_frames(h, c, 3, dim=-1)
     assert h[0].tolist() == [1, 1, 1, 2, 2, 2, 3, 3, 3]
     assert torch.equal(stack_frames(h, a, 3, dim=-1)[:, :6], h[:, 3:])  # the oldest reading leaves
+    r = stack_frames(h, torch.tensor([[7.0] * 3, [8.0] * 3]), 3, dim=-1, restart=[1])  # row 1 starts a new episode
+    assert r[0].tolist() == [2, 2, 2, 3, 3, 3, 7, 7, 7] and r[1].tolist() == [8.0] * 9
     with pytest.raises(ValueError, match="dim=-2"):
         FrameStack(3, ["state"], dim=-2)
 

@@ -148,11 +148,7 @@ class RowActor:
         """Row for row what :meth:`CheckpointPolicy._act` keeps: the last ``state_history`` readings of ``k``."""
         from torcsrl.transforms import stack_frames
 
-        prev = self._history.get(k)
-        stack = stack_frames(prev, x, self.k, dim=-1)
-        if fresh and prev is not None:
-            stack[fresh] = stack_frames(None, x[fresh], self.k, dim=-1)
-        self._history[k] = stack
+        self._history[k] = stack = stack_frames(self._history.get(k), x, self.k, dim=-1, restart=fresh)
         return stack
 
     @torch.no_grad()

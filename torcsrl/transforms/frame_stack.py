@@ -74,11 +74,17 @@ class FrameStack(CatFrames):
                 self.register_buffer(name, value.clone())
 
 
-def stack_frames(history: torch.Tensor | None, frame: torch.Tensor, frames: int, dim: int = -3) -> torch.Tensor:
+def stack_frames(history: torch.Tensor | None, frame: torch.Tensor, frames: int, dim: int = -3,
+                 restart: Sequence[int] | None = None) -> torch.Tensor:
     """The next stack ``[..., K*C, H, W]`` of a policy that keeps its own history: ``frame`` ``[..., C, H, W]``
     appended to ``history`` (the previous stack, or None at an episode's start: K copies of ``frame``).
-    ``dim=-1``: the same for vectors, ``[..., D]`` -> ``[..., K*D]``."""
+    ``dim=-1``: the same for vectors, ``[..., D]`` -> ``[..., K*D]``. ``restart``: rows of a batch (the first dim)
+    that start a new episode: their stacks are K copies of their ``frame``, as ``CatFrames`` does on a partial reset."""
     c = frame.shape[dim]
     if history is None or history.shape[:dim] != frame.shape[:dim]:
         return torch.cat([frame] * int(frames), dim)
-    return torch.cat([history.narrow(dim, c, history.shape[dim] - c), frame], dim)
+    stack = torch.cat([history.narrow(dim, c, history.shape[dim] - c), frame], dim)
+    if restart:
+        rows = list(restart)
+        stack[rows] = torch.cat([frame[rows]] * int(frames), dim)
+    return stack
