@@ -1,11 +1,13 @@
 """The racer selection screen (issue #20) as one command: races on TRAINING tracks, a table with the eligibility.
 
     python benchmarks/race_screen.py --policy A.pt B.pt reference_racer [--episodes 3] [--workers 2] [--out DIR]
+    python benchmarks/race_screen.py --policy A.pt --surfaces asphalt dirt     # every track on both (48 races)
 
 Each policy races 3 scripted experts, 5 laps from the grid, on ``set:train`` and ``gen-10001..10003`` (the training
 seed range), ``--episodes`` races a track, each opponent's pace drawn per race from ``--pace`` ([0.83, 0.87]: around
 the issue's 85 %, so that every race is its own scenario — at one pace the races of a track come from at most K + 1
-grid slots; the ``scenarios`` column counts the distinct ones). It prints, per policy, races finished, wins,
+grid slots; the ``scenarios`` column counts the distinct ones), each track on its own surface (the training set's:
+asphalt) or on each of ``--surfaces``. It prints, per policy, races finished, wins,
 collisions a race, scenarios and whether it is eligible: ``--min-finished`` / ``--min-wins`` of the races (0.75 / 0.5)
 and at most ``--max-collisions`` a race (1.0) — the issue's two race goals on training tracks, and finishing. This is
 the race screen the shipped racers were chosen on (2026-11-27, ``torcsrl/assets/reference_racer.md``); pair it with
@@ -48,8 +50,10 @@ def heldout_tracks(names: list[str]) -> list[str]:
 
 
 def screen(policies: list[str], tracks: list[str], *, episodes: int = 3, pace: tuple[float, float] = (0.83, 0.87),
-           laps: int = 5, opponents: int = 3, seed: int = 0, workers: int = 1, out: str | None = None) -> list[dict]:
-    """One summary per policy: ``{"policy", "races", "finished", "wins", "collisions_per_race", "scenarios", "wall_s"}``."""
+           laps: int = 5, opponents: int = 3, seed: int = 0, workers: int = 1, out: str | None = None,
+           surfaces: list[str] | None = None) -> list[dict]:
+    """One summary per policy: ``{"policy", "races", "finished", "wins", "collisions_per_race", "scenarios", "wall_s"}``.
+    ``surfaces``: race every track on each of them (None: each track on its own surface)."""
     from torcsrl.envs import tracks as _tracks
     from torcsrl.evaluate.race import evaluate_race
 
@@ -61,7 +65,7 @@ def screen(policies: list[str], tracks: list[str], *, episodes: int = 3, pace: t
     rows = []
     for spec in policies:
         t0 = time.perf_counter()
-        res = evaluate_race(spec, names, laps=laps, seed=seed, episodes=episodes, opponents=opponents, pace=list(pace),
+        res = evaluate_race(spec, names, surfaces=surfaces, laps=laps, seed=seed, episodes=episodes, opponents=opponents, pace=list(pace),
                             workers=workers, plots=out is not None, verbose=False,
                             out_dir=None if out is None else Path(out) / Path(str(spec)).stem)
         tot = res["summary"][-1]  # the race table's "all" row (its only row for one track): torcsrl.evaluate.race.race_summary
@@ -79,7 +83,9 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--policy", nargs="+", required=True, help="checkpoints, run folders, built-in drivers (racer_bold, ...)")
     ap.add_argument("--tracks", nargs="+", default=list(TRAIN_RACE_TRACKS))
-    ap.add_argument("--episodes", type=int, default=3, help="races a track")
+    ap.add_argument("--surfaces", nargs="+", default=None,
+                    help="race every track on each of these surfaces (default: each track on its own, asphalt for the training set)")
+    ap.add_argument("--episodes", type=int, default=3, help="races a track (and surface)")
     ap.add_argument("--pace", type=float, nargs=2, default=(0.83, 0.87), help="each opponent's pace drawn per race from [lo, hi]")
     ap.add_argument("--laps", type=int, default=5)
     ap.add_argument("--opponents", type=int, default=3)
@@ -91,9 +97,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default=None, help="write each policy's race tables and plots under OUT/<policy>")
     a = ap.parse_args(argv)
     torch.set_num_threads(1)
+    if a.surfaces:
+        from torcsrl.envs.surfaces import SURFACES
+
+        unknown = [x for x in a.surfaces if x not in SURFACES]
+        if unknown:
+            raise SystemExit(f"race_screen: unknown surface {', '.join(unknown)}; allowed: {', '.join(SURFACES)}")
     rows = screen(a.policy, a.tracks, episodes=a.episodes, pace=tuple(a.pace), laps=a.laps, opponents=a.opponents,
-                  seed=a.seed, workers=a.workers, out=a.out)
-    print(f"race screen: {' '.join(a.tracks)}, {a.laps} laps against {a.opponents} experts at pace "
+                  seed=a.seed, workers=a.workers, out=a.out, surfaces=a.surfaces)
+    on = f" on {' '.join(a.surfaces)}" if a.surfaces else ""
+    print(f"race screen: {' '.join(a.tracks)}{on}, {a.laps} laps against {a.opponents} experts at pace "
           f"[{a.pace[0]:g}, {a.pace[1]:g}], {a.episodes} races a track, seed {a.seed}")
     print("| policy | races | finished | wins | collisions / race | scenarios | eligible | wall [s] |")
     print("|---|---:|---:|---:|---:|---:|---|---:|")

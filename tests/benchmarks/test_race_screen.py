@@ -35,3 +35,16 @@ def test_a_tiny_screen_prints_the_races_and_the_eligibility(capsys):
     rows = b.screen(["racer_bold"], ["oval"], episodes=2, laps=1, opponents=1)
     assert not b.eligible(rows[0], 0.0, 0.0, -1.0)  # no driver has fewer than 0 collisions a race
     assert b.eligible(rows[0], 0.0, 0.0, 99.0)
+
+
+def test_surfaces_race_every_track_on_each_and_an_unknown_surface_is_refused_in_one_line(capsys):
+    b = _bench()
+    assert b.main(["--policy", "racer_bold", "--tracks", "oval", "--surfaces", "asphalt", "dirt", "--episodes", "1",
+                   "--laps", "1", "--opponents", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "oval on asphalt dirt" in out
+    row = next(line for line in out.splitlines() if line.startswith("| racer_bold |"))
+    assert [c.strip() for c in row.strip("|").split("|")][1] == "2"  # one race a track and surface
+    with pytest.raises(SystemExit) as err:
+        b.main(["--policy", "racer_bold", "--tracks", "oval", "--surfaces", "lava"])
+    assert "unknown surface lava" in str(err.value) and "asphalt" in str(err.value) and "\n" not in str(err.value)
