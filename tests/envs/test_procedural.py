@@ -16,6 +16,20 @@ def test_pool_is_seeded_distinct_and_inside_the_training_range():
     assert spec.names(0)[0] == f"gen-{a[0]}"
 
 
+def test_a_mixed_pool_takes_its_generators_in_turn_over_the_same_seeds_and_the_env_builds_both():
+    cfg = {"seeds": [20_000, 20_050], "pool": 6}
+    mixed = ProceduralSpec.from_config({**cfg, "generator": ["gen", "proc"]})
+    seeds = ProceduralSpec.from_config({**cfg, "generator": "gen"}).track_seeds(0)
+    assert mixed.track_seeds(0) == seeds
+    assert mixed.names(0) == [f"{'gen' if k % 2 == 0 else 'proc'}-{s}" for k, s in enumerate(seeds)]
+    assert ProceduralSpec.from_config({**cfg, "generator": ["proc"]}).generator == "proc"  # one generator in a list
+    env = make_env(seed=0, track="oval", procedural={"seeds": [30_000, 40_000], "pool": 2, "share": 1.0, "generator": ["gen", "proc"]})
+    try:
+        assert [n.split("-")[0] for n in env.core.track_names[1:]] == ["gen", "proc"]
+    finally:
+        env.close()
+
+
 @pytest.mark.parametrize("cfg,match", [
     ({"seeds": [0, 5000]}, "overlaps the held-out seed range"),
     ({"seeds": [500, 600]}, "overlaps the held-out seed range"),
@@ -24,6 +38,9 @@ def test_pool_is_seeded_distinct_and_inside_the_training_range():
     ({"pool": 0}, "positive integer"),
     ({"share": 1.5}, r"outside \[0, 1\]"),
     ({"generator": "blob"}, "allowed: proc, gen"),
+    ({"generator": ["gen", "gen"]}, "repeats a generator"),
+    ({"generator": []}, "needs at least one generator"),
+    ({"generator": ["gen", "proc"], "difficulty": 0.5}, "needs generator: proc"),
     ({"seed": [1, 2]}, "unknown keys"),
 ])
 def test_bad_specs_fail_with_one_line(cfg, match):

@@ -123,7 +123,7 @@ class RaceCore:
         traffic: ``None`` (every car alone), or a race (:mod:`torcsrl.envs.traffic`, conf/traffic/*.yaml): each of the
             ``num_cars`` learners races ``traffic.opponents`` opponents on its own copy of the track; the core then
             holds ``num_cars x (1 + opponents)`` cars, learners first (``n_learners`` of ``n``).
-        procedural: ``{seeds: [lo, hi], pool: N, share: p, generator: proc|gen}``: add a pool of N
+        procedural: ``{seeds: [lo, hi], pool: N, share: p, generator: proc|gen|[gen, proc]}``: add a pool of N
             generated tracks (seeds drawn from ``[lo, hi)`` by a stream seeded with ``seed``); each
             episode drives a pool track with probability ``share``, else a named track
             (:mod:`torcsrl.envs.tracks.procedural`). ``None``: named tracks only.

@@ -2,7 +2,8 @@
 
 A race env built with ``procedural={"seeds": [lo, hi], "pool": N, "share": p}`` adds ``N`` generated
 tracks to its track list (names ``proc-<seed>``, :func:`torcsrl.envs.tracks.generate_circuit`; or
-``gen-<seed>`` with ``generator: gen``). With ``difficulty: [lo, hi]`` (``proc`` only) each pool
+``gen-<seed>`` with ``generator: gen``; ``generator: [gen, proc]`` mixes them, the pool's k-th track from the
+k-th generator in turn — half blobs, half circuits). With ``difficulty: [lo, hi]`` (``proc`` only) each pool
 circuit's difficulty is ``lo + (hi - lo) u`` (to 3 decimals), ``u`` the difficulty its seed would draw,
 so a curriculum that raises ``hi`` makes the same seeds' circuits tighter; the tracks are then named
 ``proc-<seed>@<difficulty>``. Their seeds are drawn without replacement from
@@ -57,7 +58,8 @@ class ProceduralSpec:
         seeds: ``(lo, hi)`` range the pool's seeds are drawn from [-].
         pool: tracks in the pool [-].
         share: probability that an episode drives a pool track rather than a named one [-].
-        generator: ``proc`` or ``gen`` (:data:`GENERATORS`).
+        generator: ``proc`` or ``gen`` (:data:`GENERATORS`), or a tuple of them: the pool's k-th track comes from
+            ``generator[k % len(generator)]`` (a mixed pool; the same seeds as one generator would draw).
         difficulty: ``(lo, hi)`` within [0, 1] that the pool circuits' difficulties are scaled into
             (0: wide, gentle, few features ... 1: tight hairpins, narrow; ``generate_circuit``); None:
             each seed's own draw.
@@ -66,7 +68,7 @@ class ProceduralSpec:
     seeds: tuple[int, int] = TRAIN_SEEDS
     pool: int = 200
     share: float = 0.8
-    generator: str = "proc"
+    generator: str | tuple[str, ...] = "proc"
     difficulty: tuple[float, float] | None = None
 
     @classmethod
@@ -100,9 +102,7 @@ class ProceduralSpec:
         share = float(d.get("share", cls.share))
         if not 0.0 <= share <= 1.0:
             raise ValueError(f"procedural.share={share} is outside [0, 1]")
-        gen = str(d.get("generator", cls.generator))
-        if gen not in GENERATORS:
-            raise ValueError(f"procedural.generator={gen!r} is not known; allowed: {', '.join(GENERATORS)}")
+        gen = _generator(d.get("generator", cls.generator))
         return cls((lo, hi), int(pool), share, gen, _difficulty(d.get("difficulty"), gen))
 
     def track_seeds(self, env_seed: int | None) -> list[int]:
@@ -121,14 +121,27 @@ class ProceduralSpec:
     def names(self, env_seed: int | None) -> list[str]:
         """Track names of the pool for an env seeded with ``env_seed`` (``proc-<seed>@<difficulty>`` with a difficulty range)."""
         if self.difficulty is None:
-            return [f"{GENERATORS[self.generator]}{s}" for s in self.track_seeds(env_seed)]
+            gens = (self.generator,) if isinstance(self.generator, str) else self.generator
+            return [f"{GENERATORS[gens[k % len(gens)]]}{s}" for k, s in enumerate(self.track_seeds(env_seed))]
         from torcsrl.envs.tracks.generator import seed_difficulty
 
         lo, hi = self.difficulty
         return [f"proc-{s}@{lo + (hi - lo) * seed_difficulty(s):.3f}" for s in self.track_seeds(env_seed)]
 
 
-def _difficulty(value, generator: str) -> tuple[float, float] | None:
+def _generator(value) -> str | tuple[str, ...]:
+    """``procedural.generator``: one of :data:`GENERATORS`, or a list of distinct ones (a mixed pool)."""
+    many = not isinstance(value, str) and hasattr(value, "__iter__")
+    names = [str(v) for v in value] if many else [str(value)]
+    bad = [n for n in names if n not in GENERATORS]
+    if bad or not names or len(set(names)) != len(names):
+        why = f"{bad[0]!r} is not known" if bad else "needs at least one generator" if not names else "repeats a generator"
+        raise ValueError(f"procedural.generator={list(names) if many else names[0]!r}: {why}; allowed: "
+                         f"{', '.join(GENERATORS)} or a list of them (a mixed pool)")
+    return names[0] if len(names) == 1 else tuple(names)
+
+
+def _difficulty(value, generator: str | tuple[str, ...]) -> tuple[float, float] | None:
     """``procedural.difficulty``: null, a number or [lo, hi] within [0, 1] (generator proc only)."""
     if value is None:
         return None
