@@ -54,10 +54,13 @@ def screen(policies: list[str], tracks: list[str], *, episodes: int = 3, pace: t
            surfaces: list[str] | None = None) -> list[dict]:
     """One summary per policy: ``{"policy", "races", "finished", "wins", "collisions_per_race", "scenarios", "wall_s"}``.
     ``surfaces``: race every track on each of them (None: each track on its own surface)."""
-    from torcsrl.envs import tracks as _tracks
+    from torcsrl.evaluate.protocol import EvalError, validate_grid
     from torcsrl.evaluate.race import evaluate_race
 
-    names = _tracks.resolve(list(tracks))
+    try:
+        names, _ = validate_grid(list(tracks), surfaces)  # the race mode's own checks of names and road surfaces
+    except EvalError as err:
+        raise SystemExit(f"race_screen: {err}") from None
     bad = heldout_tracks(names)
     if bad:
         raise SystemExit(f"race_screen: {', '.join(bad)} {'is a held-out track' if len(bad) == 1 else 'are held-out tracks'}; "
@@ -97,12 +100,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default=None, help="write each policy's race tables and plots under OUT/<policy>")
     a = ap.parse_args(argv)
     torch.set_num_threads(1)
-    if a.surfaces:
-        from torcsrl.envs.surfaces import SURFACES
-
-        unknown = [x for x in a.surfaces if x not in SURFACES]
-        if unknown:
-            raise SystemExit(f"race_screen: unknown surface {', '.join(unknown)}; allowed: {', '.join(SURFACES)}")
     rows = screen(a.policy, a.tracks, episodes=a.episodes, pace=tuple(a.pace), laps=a.laps, opponents=a.opponents,
                   seed=a.seed, workers=a.workers, out=a.out, surfaces=a.surfaces)
     on = f" on {' '.join(a.surfaces)}" if a.surfaces else ""

@@ -53,13 +53,7 @@ def known_teacher(name: str) -> bool:
     """Whether ``name`` is one of :data:`TEACHERS`: a plain name as listed, or a parametrised one (``racer_safe[:<gamma>]``
     listed) bare or with any ``:<value>`` (the value is checked where the teacher is built)."""
     base = name.split(":", 1)[0]
-    for t in TEACHERS:
-        if "[:" in t:
-            if base == t.split("[", 1)[0]:
-                return True
-        elif name == t:
-            return True
-    return False
+    return any(t.startswith(base + "[:") if "[:" in t else t == name for t in TEACHERS)
 
 
 class DemoError(ValueError):

@@ -37,6 +37,14 @@ def test_a_tiny_screen_prints_the_races_and_the_eligibility(capsys):
     assert b.eligible(rows[0], 0.0, 0.0, 99.0)
 
 
+@pytest.mark.parametrize("argv,match", [(["--tracks", "oval", "--surfaces", "grass"], "unknown surface 'grass'"),
+                                        (["--tracks", "no_such_track"], "no_such_track")])
+def test_an_off_road_surface_or_an_unknown_track_is_refused_in_one_line(argv, match):
+    with pytest.raises(SystemExit) as err:
+        _bench().main(["--policy", "racer_bold", *argv])
+    assert match in str(err.value) and str(err.value).startswith("race_screen: ") and "\n" not in str(err.value)
+
+
 def test_surfaces_race_every_track_on_each_and_an_unknown_surface_is_refused_in_one_line(capsys):
     b = _bench()
     assert b.main(["--policy", "racer_bold", "--tracks", "oval", "--surfaces", "asphalt", "dirt", "--episodes", "1",
@@ -47,4 +55,4 @@ def test_surfaces_race_every_track_on_each_and_an_unknown_surface_is_refused_in_
     assert [c.strip() for c in row.strip("|").split("|")][1] == "2"  # one race a track and surface
     with pytest.raises(SystemExit) as err:
         b.main(["--policy", "racer_bold", "--tracks", "oval", "--surfaces", "lava"])
-    assert "unknown surface lava" in str(err.value) and "asphalt" in str(err.value) and "\n" not in str(err.value)
+    assert "unknown surface 'lava'" in str(err.value) and "asphalt" in str(err.value) and "\n" not in str(err.value)
