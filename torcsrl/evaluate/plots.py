@@ -109,6 +109,8 @@ def plot_race(track, trace: Mapping[str, object], path: str | Path, title: str =
         hits = list(trace.get("hits") or [])
         if hits:
             pts = np.array([xy[min(t, len(xy) - 1), c] for t, c in hits])
-            ax.plot(pts[:, 0], pts[:, 1], "x", color="k", ms=9, mew=2.2, zorder=5, label=f"collision ({len(hits)} car contacts)")
+            own = sum(1 for _, c in hits if c == learner)  # a contact marks each car in it: the learner's, the opponents'
+            ax.plot(pts[:, 0], pts[:, 1], "x", color="k", ms=9, mew=2.2, zorder=5,
+                    label=f"contact begun ({own} of the learner, {len(hits) - own} of opponents)")
         ax.legend(loc="upper right", fontsize=8)
     return _save_top_down(fig, ax, path, title or track.name)

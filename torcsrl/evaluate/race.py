@@ -201,7 +201,7 @@ def evaluate_race(policy: str | Policy, tracks: str | Sequence[str], surfaces: A
 
             r0 = rows[0]
             title = (f"{pol.name} vs {r0['opponents']} on {name}: "
-                     + (f"P{r0['position']}" if r0["position"] else "DNF") + f", {r0['collisions']} collision(s)")
+                     + (f"P{r0['position']}" if r0["position"] else "DNF") + f", {r0['collisions']} learner collision(s)")
             files.append(str(plot_race(_tracks.load(name, surface=surface), traces[0], out / f"race_{name}_{s['surface']}.png", title)))
     if len(summaries) > 1:
         tot = race_summary(all_rows)
