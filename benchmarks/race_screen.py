@@ -52,10 +52,11 @@ def heldout_tracks(names: list[str]) -> list[str]:
 def screen(policies: list[str], tracks: list[str], *, episodes: int = 3, pace: tuple[float, float] = (0.83, 0.87),
            laps: int = 5, opponents: int = 3, seed: int = 0, workers: int = 1, out: str | None = None,
            surfaces: list[str] | None = None) -> list[dict]:
-    """One summary per policy: ``{"policy", "races", "finished", "wins", "collisions_per_race", "scenarios", "wall_s"}``.
-    ``surfaces``: race every track on each of them (None: each track on its own surface)."""
+    """One summary per policy: ``{"policy", "races", "finished", "wins", "collisions_per_race", "scenarios", "wall_s",
+    "by_surface"}``; ``by_surface``: the same counts for each surface raced (``{surface: {"races", "finished", "wins",
+    "collisions_per_race"}}``). ``surfaces``: race every track on each of them (None: each track on its own surface)."""
     from torcsrl.evaluate.protocol import EvalError, validate_grid
-    from torcsrl.evaluate.race import evaluate_race
+    from torcsrl.evaluate.race import evaluate_race, race_summary
 
     try:
         names, _ = validate_grid(list(tracks), surfaces)  # the race mode's own checks of names and road surfaces
@@ -72,8 +73,11 @@ def screen(policies: list[str], tracks: list[str], *, episodes: int = 3, pace: t
                             workers=workers, plots=out is not None, verbose=False,
                             out_dir=None if out is None else Path(out) / Path(str(spec)).stem)
         tot = res["summary"][-1]  # the race table's "all" row (its only row for one track): torcsrl.evaluate.race.race_summary
+        raced = dict.fromkeys(r["surface"] for r in res["episodes"])  # in the order raced
+        by_surface = {s: race_summary([r for r in res["episodes"] if r["surface"] == s]) for s in raced}
         rows.append({"policy": str(spec), **{k: tot[k] for k in ("races", "finished", "wins", "collisions_per_race", "scenarios")},
-                     "wall_s": time.perf_counter() - t0})
+                     "wall_s": time.perf_counter() - t0,
+                     "by_surface": {s: {k: v[k] for k in ("races", "finished", "wins", "collisions_per_race")} for s, v in by_surface.items()}})
     return rows
 
 
@@ -113,6 +117,13 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['scenarios']} | {'yes' if ok else 'no'} | {r['wall_s']:.0f} |")
     print(f"eligible: finished >= {a.min_finished:g}, wins >= {a.min_wins:g} of the races, <= {a.max_collisions:g} "
           "collisions a race")
+    if any(len(r["by_surface"]) > 1 for r in rows):  # a driver can win its asphalt races and few on dirt: show each
+        print("\nper surface:")
+        print("| policy | surface | races | finished | wins | collisions / race |")
+        print("|---|---|---:|---:|---:|---:|")
+        for r in rows:
+            for surf, v in r["by_surface"].items():
+                print(f"| {r['policy']} | {surf} | {v['races']} | {v['finished']} | {v['wins']} | {v['collisions_per_race']:.2f} |")
     return 0
 
 

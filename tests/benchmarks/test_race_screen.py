@@ -53,6 +53,11 @@ def test_surfaces_race_every_track_on_each_and_an_unknown_surface_is_refused_in_
     assert "oval on asphalt dirt" in out
     row = next(line for line in out.splitlines() if line.startswith("| racer_bold |"))
     assert [c.strip() for c in row.strip("|").split("|")][1] == "2"  # one race a track and surface
+    per = [[c.strip() for c in line.strip("|").split("|")] for line in out.split("per surface:")[1].splitlines()
+           if line.startswith("| racer_bold |")]
+    assert [p[1] for p in per] == ["asphalt", "dirt"] and all(p[2] == "1" for p in per)  # one race on each
+    total = [c.strip() for c in row.strip("|").split("|")]
+    assert sum(int(p[3]) for p in per) == int(total[2]) and sum(int(p[4]) for p in per) == int(total[3])  # finished, wins
     with pytest.raises(SystemExit) as err:
         b.main(["--policy", "racer_bold", "--tracks", "oval", "--surfaces", "lava"])
     assert "unknown surface 'lava'" in str(err.value) and "asphalt" in str(err.value) and "\n" not in str(err.value)
