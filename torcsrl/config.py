@@ -81,6 +81,8 @@ RANGES: dict[str, tuple[float | None, float | None, str]] = {
     "algo.aux_privileged": (0.0, None, "closed"),
     "algo.bc_pedal_expectile": (0.0, 1.0, "both-open"),
     "algo.grip_estimate": (0.0, None, "closed"),
+    "algo.bc_near_car_weight": (0.0, None, "open"),
+    "algo.bc_near_car_m": (0.0, 200.0, "open"),
     "algo.smooth.temporal": (0.0, None, "closed"),
     "algo.smooth.spatial": (0.0, None, "closed"),
     "algo.smooth.spatial_sigma": (0.0, None, "closed"),
@@ -195,7 +197,7 @@ def problems(cfg: DictConfig | Mapping) -> list[str]:
     if c.get("curriculum") is not None:  # its stages, and every stage's config checked like this one (torcsrl/curriculum.py)
         from torcsrl.curriculum import problems as curriculum_problems
 
-        out += curriculum_problems(cfg if isinstance(cfg, DictConfig) else OmegaConf.create(dict(cfg)), list(out))
+        out += curriculum_problems(cfg, list(out))
     return out
 
 
@@ -503,6 +505,17 @@ def _check_algo_fit(c: Mapping, out: list[str]) -> None:
         elif env.get("action_mode") not in (None, "combined"):
             out.append(f"algo.bc_pedal_expectile={tau} weighs action 1 as a pedal (< 0 = brake), which env.action_mode="
                        f"{env.get('action_mode')} does not have; allowed: 0.5, or env.action_mode=combined")
+    near = algo.get("bc_near_car_weight", 1.0)
+    if _is_num(near) and near != 1.0:
+        env = c.get("env") if isinstance(c.get("env"), Mapping) else {}
+        keys = c.get("obs_keys") or env.get("sensors") or []
+        keys = [keys] if isinstance(keys, str) else list(keys)
+        if name not in ("bc", "dagger"):
+            out.append(f"algo.bc_near_car_weight={near}: the near-car weight shapes the imitation fit of algo=bc / dagger only "
+                       f"(algo={name}); allowed: 1.0, or algo=bc / dagger")
+        elif "opponents" not in keys:
+            out.append(f"algo.bc_near_car_weight={near} weighs the rows by the opponents sensor, which the actor does not read "
+                       f"(its keys {keys}); allowed: 1.0, or env.sensors with opponents")
     grip = algo.get("grip_estimate", 0.0)
     if _is_num(grip) and grip > 0 and name not in ("bc", "dagger"):
         out.append(f"algo.grip_estimate={grip}: the grip head learns from the demonstrations' privileged mu, which only algo=bc / "

@@ -318,7 +318,7 @@ def _check_key(key: str, where: str, env_name: str) -> None:
         raise CurriculumError(f"{where}: unknown key {key!r} (env={env_name} has no {k!r}); allowed: {allowed}")
 
 
-def problems(cfg: DictConfig, base_problems: list[str]) -> list[str]:
+def problems(cfg: DictConfig | Mapping, base_problems: list[str]) -> list[str]:
     """The curriculum's problems as config-check lines: its structure (:meth:`Curriculum.from_config`), then every
     stage's config checked like the base config (only what the stage adds to ``base_problems``), prefixed with the
     stage's name. Refused with algorithms whose loop does not follow a curriculum (bc, on-policy); DAgger's rounds
@@ -338,6 +338,9 @@ def problems(cfg: DictConfig, base_problems: list[str]) -> list[str]:
     if base_problems:
         return []  # the stages are checked once the base config is sound
     from torcsrl.config import problems as config_problems
+
+    if not isinstance(cfg, DictConfig):  # a plain mapping (config.problems of a dict): the stages merge into a DictConfig
+        cfg = OmegaConf.create(dict(cfg))
 
     out: list[str] = []
     deg = cfg.get("degradation")
