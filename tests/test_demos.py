@@ -275,6 +275,59 @@ def test_pedal_expectile_leans_the_fit_towards_braking():
     validate(cfg_for("algo=dagger", "algo.bc_pedal_expectile=0.2"))
 
 
+def test_near_car_weight_leans_the_fit_to_the_rows_in_traffic():
+    """algo.bc_near_car_weight=w: rows whose opponents sensor reads a car nearer than bc_near_car_m count w times.
+    Half the rows have a car 5 m away (label pedal -1, lift), half a free sensor (label +1): the plain fit is 0, with
+    w = 3 the weighted mean (3 (-1) + 1) / 4 = -0.5. The reach in metres becomes the stored (normalised) units; a weight
+    without the opponents sensor, with an RL algo or out of range fails in one line."""
+    from types import SimpleNamespace
+
+    from tensordict import TensorDict
+
+    from torcsrl.agents._build import bc_step, near_car_weights
+    from torcsrl.config import validate
+    from torcsrl.imitation import _near_car
+
+    class Const(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.a = torch.nn.Parameter(torch.zeros(2))
+
+        def forward(self, x):
+            return self.a.expand(x.shape[0], 2)
+
+    opp = torch.ones(64, 36)
+    opp[:32, 7] = 5.0 / 200.0  # one car 5 m away, sector 7; the rest free (200 m = 1.0 normalised)
+    labels = torch.tensor([[0.0, -1.0]]).repeat(64, 1)
+    labels[32:, 1] = 1.0
+    batch = TensorDict({"state": torch.zeros(64, 1), "opponents": opp, "expert_action": labels}, [64])
+    assert near_car_weights(opp, 3.0, 15.0 / 200.0).tolist() == [3.0] * 32 + [1.0] * 32
+    fits = {}
+    for near in (None, (3.0, 15.0 / 200.0), (3.0, 4.0 / 200.0)):
+        actor = Const()
+        net = SimpleNamespace(actor_network=actor, obs=lambda b: (b["state"],))
+        optim = {"actor": torch.optim.SGD(actor.parameters(), lr=0.2)}
+        for _ in range(300):
+            _, extra = bc_step(net, optim, batch, "float32", None, None, near)
+        fits[near] = (float(actor.a.detach()[1]), float(extra.get("loss/near_car_rows", -1)))
+    assert fits[None][0] == pytest.approx(0.0, abs=1e-4)
+    assert fits[(3.0, 15.0 / 200.0)] == pytest.approx((-0.5, 0.5), abs=1e-4)
+    assert fits[(3.0, 4.0 / 200.0)] == pytest.approx((0.0, 0.0), abs=1e-4)  # the car at 5 m is beyond a 4 m reach
+    cfg = cfg_for("algo=dagger", "env.sensors=[rangefinder,state,opponents]", "algo.bc_near_car_weight=3", "algo.bc_near_car_m=20")
+    validate(cfg)
+    assert _near_car(cfg, ["rangefinder", "state", "opponents"]) == pytest.approx((3.0, 0.1))
+    assert _near_car(cfg_for("algo=dagger"), ["rangefinder", "state"]) is None
+    with pytest.raises(ValueError, match=r"algo.bc_near_car_weight=3 weighs the rows by the opponents sensor, which the actor "
+                                         r"does not read .*allowed: 1.0, or env.sensors with opponents"):
+        validate(cfg_for("algo=dagger", "algo.bc_near_car_weight=3"))
+    with pytest.raises(ValueError, match=r"algo.bc_near_car_weight=3.0 weighs the rows by the opponents sensor"):
+        _near_car(cfg_for("algo=dagger", "algo.bc_near_car_weight=3"), ["rangefinder", "state"])
+    with pytest.raises(ValueError, match="algo.bc_near_car_weight=3: the near-car weight shapes the imitation fit of algo=bc / dagger only"):
+        validate(cfg_for("algo=td3", "env.sensors=[rangefinder,state,opponents]", "algo.bc_near_car_weight=3"))
+    with pytest.raises(ValueError, match=r"algo.bc_near_car_m: 0.0 is out of range; allowed: \(0, 200\]"):
+        validate(cfg_for("algo=dagger", "env.sensors=[rangefinder,state,opponents]", "algo.bc_near_car_weight=3", "algo.bc_near_car_m=0.0"))
+
+
 def test_a_killed_dagger_run_resumes_exactly_after_its_last_round(tmp_path, demo_dir):
     """A DAgger run stopped after round 1 and resumed (``checkpoint.resume=latest``) ends with the same actor, to the
     bit, as the run that was never stopped (CPU): the optimiser, the generators and round 1's relabelled rows

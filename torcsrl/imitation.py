@@ -105,6 +105,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
             head = torch.nn.Linear(actor.encoder.out_dim, len(PRIVILEGED_SLOTS)).to(device)
             optim["actor"].add_param_group({"params": list(head.parameters())})
             aux = (head, aux_w)
+        near_car = _near_car(cfg, obs_keys)
         rounds = int(cfg.demos.dagger_rounds) if algo == "dagger" else 0
         steps_per_fit, batch_size, precision = int(cfg.algo.bc_steps), int(cfg.algo.batch_size), str(cfg.algo.precision)
         lr_schedule = str(cfg.algo.get("bc_lr_schedule", "constant"))
@@ -168,7 +169,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
                 print(f"[torcsrl] actor from {started}" + ("; DAgger rounds refit it (round 0 only validates it)" if fit == 0 else ""),
                       file=sys.stderr)
             for i in range(fit):
-                bc, smooth = bc_step(net, optim, mixed_sample(buffers, batch_size).to(device), precision, cfg.algo, aux)
+                bc, smooth = bc_step(net, optim, mixed_sample(buffers, batch_size).to(device), precision, cfg.algo, aux, near_car)
                 if sched is not None:
                     with warnings.catch_warnings():  # FusedAdam.fast_step bypasses the step counter torch's check reads
                         warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step\\(\\)` before")
@@ -215,6 +216,24 @@ def train(cfg: DictConfig) -> dict[str, Any]:
           f"[torcsrl] evaluate: python -m torcsrl.evaluate --policy {run_dir} --track set:heldout --surface asphalt dirt --laps 10", file=sys.stderr)
     return {"frames": frames, "updates": updates, "episodes": 0, "wall_s": wall, "run_dir": str(run_dir),
             "checkpoint": str(ck) if ck else None, **result}
+
+
+def _near_car(cfg: DictConfig, obs_keys: list[str]) -> tuple[float, float] | None:
+    """``(weight, reach)`` of :func:`torcsrl.agents._build.bc_step` from ``algo.bc_near_car_weight`` and
+    ``algo.bc_near_car_m`` (the reach in metres, converted to the stored units of ``opponents``: /200 m when
+    ``env.normalize``), or None when the weight is 1. ValueError (one line) when the actor reads no opponents sensor."""
+    weight = float(cfg.algo.get("bc_near_car_weight", 1.0))
+    if weight == 1.0:
+        return None
+    if "opponents" not in obs_keys:
+        raise ValueError(f"algo.bc_near_car_weight={weight} weighs the rows by the opponents sensor, which the actor does not read "
+                         f"(its keys {obs_keys}); allowed: 1.0, or env.sensors with opponents")
+    reach_m = float(cfg.algo.get("bc_near_car_m", 15.0))
+    if cfg.env.name == "race" and cfg.env.get("normalize", True):
+        from torcsrl.envs.sensors import obs_scale
+
+        reach_m /= float(obs_scale("opponents")[0])
+    return weight, reach_m
 
 
 def _resume_checkpoint(cfg: DictConfig, ckpt_dir: Path, meta: dict) -> dict:

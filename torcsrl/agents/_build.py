@@ -291,7 +291,8 @@ def actor_regularisers(loss: LossModule, batch, action: torch.Tensor, q: torch.T
 
 
 def bc_step(loss: LossModule, optim: dict, batch, precision: str = "float32", reg: Any = None,
-            aux: tuple[torch.nn.Module, float] | None = None) -> tuple[torch.Tensor, dict]:
+            aux: tuple[torch.nn.Module, float] | None = None,
+            near_car: tuple[float, float] | None = None) -> tuple[torch.Tensor, dict]:
     """One behaviour-cloning step of the actor: ``|mu(s) - a*|^2`` on a demonstration batch, plus the CAPS
     terms of ``reg`` (the ``algo`` config; :func:`actor_regularisers`) when they are on.
 
@@ -306,7 +307,14 @@ def bc_step(loss: LossModule, optim: dict, batch, precision: str = "float32", re
     ``w * mean (grip(features) - mu)^2``, the head regressing the friction coefficient under the car in each row
     (``privileged[..., surfaceMu]``); logged as ``loss/grip`` (its mean squared error [mu^2]).
 
-    Returns (the regression loss, the smoothness metrics ``loss/smooth_*``, ``loss/aux`` and ``loss/grip``), detached.
+    ``near_car=(weight, reach)`` weighs each row's regression error by ``weight`` where the row's ``opponents`` sensor
+    reads a car nearer than ``reach`` (in the stored units of the key: normalised by 200 m when ``env.normalize``) and 1
+    elsewhere, a weighted mean (the loss stays on the squared-error scale): the rows in traffic, where a student's
+    wrong pedal is a contact, count ``weight`` times as much (``algo.bc_near_car_weight``, :func:`near_car_weights`);
+    ``loss/near_car_rows`` logs their share of the batch.
+
+    Returns (the regression loss, the smoothness metrics ``loss/smooth_*``, ``loss/aux``, ``loss/grip`` and
+    ``loss/near_car_rows``), detached.
     """
     grip_w = float(getattr(reg, "grip_estimate", 0.0) or 0.0) if reg is not None else 0.0
     with precision_context(precision, batch.device or "cpu"):
@@ -319,10 +327,18 @@ def bc_step(loss: LossModule, optim: dict, batch, precision: str = "float32", re
         tau = float(getattr(reg, "bc_pedal_expectile", 0.5) if reg is not None else 0.5)
         if tau != 0.5:  # expectile regression of the pedal: braking too little (err > 0) weighs (1 - tau) / tau as much
             w = torch.where(err[..., 1] > 0, 2.0 * (1.0 - tau), 2.0 * tau)
-            bc = (err[..., 0].pow(2) + w * err[..., 1].pow(2) + err[..., 2:].pow(2).sum(-1)).mean()
+            per_row = err[..., 0].pow(2) + w * err[..., 1].pow(2) + err[..., 2:].pow(2).sum(-1)
         else:
-            bc = err.pow(2).sum(-1).mean()
+            per_row = err.pow(2).sum(-1)
+        near = {}
+        if near_car is not None:
+            rw = near_car_weights(batch.get("opponents"), *near_car)
+            bc = (rw * per_row).sum() / rw.sum()
+            near = {"loss/near_car_rows": (rw != 1.0).float().mean()}
+        else:
+            bc = per_row.mean()
         total, extra = (bc, {}) if reg is None else actor_regularisers(loss, batch, action, None, bc, reg)
+        extra = {**extra, **near}
         if aux is not None:
             head, weight = aux
             la = (head(feats).float() - batch.get("privileged")).pow(2).mean()
@@ -340,6 +356,14 @@ def bc_step(loss: LossModule, optim: dict, batch, precision: str = "float32", re
     total.backward()
     _step(optim["actor"])
     return bc.detach(), extra
+
+
+def near_car_weights(opponents: torch.Tensor, weight: float, reach: float) -> torch.Tensor:
+    """Per-row weights of the imitation loss: ``weight`` where the nearest car of the ``opponents`` sensor (36 sectors,
+    TORCS's convention: the free reading is the sensor's range) is nearer than ``reach`` (the key's units), else 1.
+    ``opponents``: [B, 36]; returns [B] in float32."""
+    near = opponents.float().amin(-1) < float(reach)
+    return torch.where(near, torch.full_like(near, float(weight), dtype=torch.float32), torch.ones_like(near, dtype=torch.float32))
 
 
 def update(loss: LossModule, optim: dict, updater: SoftUpdate, batch, n_update: int, policy_delay: int, grad_clip: float | None,
