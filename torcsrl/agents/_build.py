@@ -362,8 +362,8 @@ def near_car_weights(opponents: torch.Tensor, weight: float, reach: float) -> to
     """Per-row weights of the imitation loss: ``weight`` where the nearest car of the ``opponents`` sensor (36 sectors,
     TORCS's convention: the free reading is the sensor's range) is nearer than ``reach`` (the key's units), else 1.
     ``opponents``: [B, 36]; returns [B] in float32."""
-    near = opponents.float().amin(-1) < float(reach)
-    return torch.where(near, torch.full_like(near, float(weight), dtype=torch.float32), torch.ones_like(near, dtype=torch.float32))
+    near = (opponents.float().amin(-1) < float(reach)).float()
+    return 1.0 + (float(weight) - 1.0) * near
 
 
 def update(loss: LossModule, optim: dict, updater: SoftUpdate, batch, n_update: int, policy_delay: int, grad_clip: float | None,
