@@ -112,5 +112,6 @@ def plot_race(track, trace: Mapping[str, object], path: str | Path, title: str =
             own = sum(1 for _, c in hits if c == learner)  # a contact marks each car in it: the learner's, the opponents'
             ax.plot(pts[:, 0], pts[:, 1], "x", color="k", ms=9, mew=2.2, zorder=5,
                     label=f"contact begun ({own} of the learner, {len(hits) - own} of opponents)")
-        ax.legend(loc="upper right", fontsize=8)
+        # below the axes: inside, a fixed corner can hide the very contact the plot is for
+        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=3, fontsize=8, frameon=False)
     return _save_top_down(fig, ax, path, title or track.name)
