@@ -2,6 +2,7 @@
 
     python benchmarks/race_screen.py --policy A.pt B.pt reference_racer [--episodes 3] [--workers 2] [--out DIR]
     python benchmarks/race_screen.py --policy A.pt --surfaces asphalt dirt     # every track on both (48 races)
+    python benchmarks/race_screen.py --policy A.pt --surfaces asphalt dirt --surface-weights asphalt=5 dirt=1
 
 Each policy races 3 scripted experts, 5 laps from the grid, on ``set:train`` and ``gen-10001..10003`` (the training
 seed range), ``--episodes`` races a track, each opponent's pace drawn per race from ``--pace`` ([0.83, 0.87]: around
@@ -12,6 +13,11 @@ collisions a race, scenarios and whether it is eligible: ``--min-finished`` / ``
 and at most ``--max-collisions`` a race (1.0) — the issue's two race goals on training tracks, and finishing. This is
 the race screen the shipped racers were chosen on (2026-11-27, ``torcsrl/assets/reference_racer.md``); pair it with
 ``python benchmarks/generalisation.py --screen --laps 10 --surfaces asphalt dirt`` (solo, no forgetting).
+
+``--surface-weights asphalt=5 dirt=1`` judges the eligibility on surface-weighted rates instead of the pooled counts:
+each surface's finished share, win share and collisions a race, weighted (``5/6 * asphalt + 1/6 * dirt``). Racing every
+track on both surfaces weighs dirt half; the held-out race protocol (``set:heldout``) has one dirt track of six, so
+weights 5 and 1 make the training screen's mix the held-out one without racing fewer dirt races.
 
 Selection happens on training tracks only: a held-out track (``set:heldout``, a bundled held-out track or a generated
 track of the held-out seed range) is refused in one line; measure those once, after the choice, with
@@ -81,7 +87,48 @@ def screen(policies: list[str], tracks: list[str], *, episodes: int = 3, pace: t
     return rows
 
 
-def eligible(row: dict, min_finished: float, min_wins: float, max_collisions: float) -> bool:
+def parse_surface_weights(items: list[str], surfaces: list[str] | None) -> dict[str, float]:
+    """``["asphalt=5", "dirt=1"]`` -> ``{"asphalt": 5.0, "dirt": 1.0}``; SystemExit (one line) unless every surface
+    raced (``--surfaces``) has one weight >= 0 and they sum to more than 0."""
+    if not surfaces:
+        raise SystemExit("race_screen: --surface-weights needs --surfaces (the surfaces every track is raced on)")
+    out: dict[str, float] = {}
+    for item in items:
+        name, eq, val = item.partition("=")
+        try:
+            w = float(val) if eq else float("nan")
+        except ValueError:
+            w = float("nan")
+        if not w >= 0:  # also NaN
+            raise SystemExit(f"race_screen: surface weight {item!r} is not SURFACE=W with W >= 0 (e.g. asphalt=5 dirt=1)")
+        if name not in surfaces:
+            raise SystemExit(f"race_screen: surface weight {name!r} names a surface not raced; raced: {', '.join(surfaces)}")
+        out[name] = w
+    missing = [s for s in surfaces if s not in out]
+    if missing or sum(out.values()) <= 0:
+        raise SystemExit(f"race_screen: --surface-weights must weigh every surface raced ({', '.join(surfaces)}) and "
+                         f"sum to more than 0; {'missing: ' + ', '.join(missing) if missing else 'all weights are 0'}")
+    return out
+
+
+def weighted_rates(row: dict, weights: dict[str, float]) -> dict[str, float]:
+    """The surface-weighted finished share, win share and collisions a race of one screen row (``by_surface``)."""
+    tot = sum(weights[s] for s in row["by_surface"])
+    rate = {"finished": 0.0, "wins": 0.0, "collisions_per_race": 0.0}
+    for s, v in row["by_surface"].items():
+        w = weights[s] / tot
+        rate["finished"] += w * v["finished"] / v["races"]
+        rate["wins"] += w * v["wins"] / v["races"]
+        rate["collisions_per_race"] += w * v["collisions_per_race"]
+    return rate
+
+
+def eligible(row: dict, min_finished: float, min_wins: float, max_collisions: float,
+             weights: dict[str, float] | None = None) -> bool:
+    """The pooled counts pass the thresholds (``weights``: the surface-weighted rates do)."""
+    if weights:
+        r = weighted_rates(row, weights)
+        return r["finished"] >= min_finished and r["wins"] >= min_wins and r["collisions_per_race"] <= max_collisions
     n = row["races"]
     return row["finished"] >= min_finished * n and row["wins"] >= min_wins * n and row["collisions_per_race"] <= max_collisions
 
@@ -101,8 +148,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--min-finished", type=float, default=0.75, help="share of the races finished to be eligible")
     ap.add_argument("--min-wins", type=float, default=0.5, help="share of the races won to be eligible")
     ap.add_argument("--max-collisions", type=float, default=1.0, help="collisions a race to be eligible")
+    ap.add_argument("--surface-weights", nargs="+", default=None, metavar="SURFACE=W",
+                    help="judge eligibility on surface-weighted rates, e.g. asphalt=5 dirt=1 (the held-out race mix); needs --surfaces")
     ap.add_argument("--out", default=None, help="write each policy's race tables and plots under OUT/<policy>")
     a = ap.parse_args(argv)
+    weights = parse_surface_weights(a.surface_weights, a.surfaces) if a.surface_weights else None
     torch.set_num_threads(1)
     rows = screen(a.policy, a.tracks, episodes=a.episodes, pace=tuple(a.pace), laps=a.laps, opponents=a.opponents,
                   seed=a.seed, workers=a.workers, out=a.out, surfaces=a.surfaces)
@@ -112,10 +162,11 @@ def main(argv: list[str] | None = None) -> int:
     print("| policy | races | finished | wins | collisions / race | scenarios | eligible | wall [s] |")
     print("|---|---:|---:|---:|---:|---:|---|---:|")
     for r in rows:
-        ok = eligible(r, a.min_finished, a.min_wins, a.max_collisions)
+        ok = eligible(r, a.min_finished, a.min_wins, a.max_collisions, weights)
         print(f"| {r['policy']} | {r['races']} | {r['finished']} | {r['wins']} | {r['collisions_per_race']:.2f} | "
               f"{r['scenarios']} | {'yes' if ok else 'no'} | {r['wall_s']:.0f} |")
-    print(f"eligible: finished >= {a.min_finished:g}, wins >= {a.min_wins:g} of the races, <= {a.max_collisions:g} "
+    mix = f" (surface-weighted: {', '.join(f'{k} {v:g}' for k, v in weights.items())})" if weights else ""
+    print(f"eligible{mix}: finished >= {a.min_finished:g}, wins >= {a.min_wins:g} of the races, <= {a.max_collisions:g} "
           "collisions a race")
     if any(len(r["by_surface"]) > 1 for r in rows):  # a driver can win its asphalt races and few on dirt: show each
         print("\nper surface:")
@@ -124,6 +175,14 @@ def main(argv: list[str] | None = None) -> int:
         for r in rows:
             for surf, v in r["by_surface"].items():
                 print(f"| {r['policy']} | {surf} | {v['races']} | {v['finished']} | {v['wins']} | {v['collisions_per_race']:.2f} |")
+    if weights:
+        print(f"\nsurface-weighted ({', '.join(f'{k} {v:g}' for k, v in weights.items())}):")
+        print("| policy | finished | wins | collisions / race | eligible |")
+        print("|---|---:|---:|---:|---|")
+        for r in rows:
+            w = weighted_rates(r, weights)
+            ok = eligible(r, a.min_finished, a.min_wins, a.max_collisions, weights)
+            print(f"| {r['policy']} | {w['finished']:.3f} | {w['wins']:.3f} | {w['collisions_per_race']:.2f} | {'yes' if ok else 'no'} |")
     return 0
 
 

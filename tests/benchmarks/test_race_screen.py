@@ -48,16 +48,51 @@ def test_an_off_road_surface_or_an_unknown_track_is_refused_in_one_line(argv, ma
 def test_surfaces_race_every_track_on_each_and_an_unknown_surface_is_refused_in_one_line(capsys):
     b = _bench()
     assert b.main(["--policy", "racer_bold", "--tracks", "oval", "--surfaces", "asphalt", "dirt", "--episodes", "1",
-                   "--laps", "1", "--opponents", "1"]) == 0
+                   "--laps", "1", "--opponents", "1", "--surface-weights", "asphalt=5", "dirt=1"]) == 0
     out = capsys.readouterr().out
     assert "oval on asphalt dirt" in out
     row = next(line for line in out.splitlines() if line.startswith("| racer_bold |"))
     assert [c.strip() for c in row.strip("|").split("|")][1] == "2"  # one race a track and surface
-    per = [[c.strip() for c in line.strip("|").split("|")] for line in out.split("per surface:")[1].splitlines()
+    per = [[c.strip() for c in line.strip("|").split("|")] for line in out.split("per surface:")[1].split("surface-weighted")[0].splitlines()
            if line.startswith("| racer_bold |")]
     assert [p[1] for p in per] == ["asphalt", "dirt"] and all(p[2] == "1" for p in per)  # one race on each
     total = [c.strip() for c in row.strip("|").split("|")]
     assert sum(int(p[3]) for p in per) == int(total[2]) and sum(int(p[4]) for p in per) == int(total[3])  # finished, wins
+    (w,) = [[c.strip() for c in line.strip("|").split("|")] for line in out.split("surface-weighted (asphalt 5, dirt 1):")[1].splitlines()
+            if line.startswith("| racer_bold |")]
+    asp, dirt = per  # one race each: the weighted shares are 5/6 of asphalt's and 1/6 of dirt's
+    assert float(w[1]) == pytest.approx(5 / 6 * int(asp[3]) + 1 / 6 * int(dirt[3]), abs=1e-3)
+    assert float(w[2]) == pytest.approx(5 / 6 * int(asp[4]) + 1 / 6 * int(dirt[4]), abs=1e-3)
+    assert float(w[3]) == pytest.approx(5 / 6 * float(asp[5]) + 1 / 6 * float(dirt[5]), abs=0.01)
     with pytest.raises(SystemExit) as err:
         b.main(["--policy", "racer_bold", "--tracks", "oval", "--surfaces", "lava"])
     assert "unknown surface 'lava'" in str(err.value) and "asphalt" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_surface_weights_reweigh_the_eligibility_to_the_held_out_mix():
+    b = _bench()
+    row = {"races": 48, "finished": 36, "wins": 20, "collisions_per_race": 0.955,  # R15's training screen (2026-11-28)
+           "by_surface": {"asphalt": {"races": 24, "finished": 20, "wins": 17, "collisions_per_race": 0.79},
+                          "dirt": {"races": 24, "finished": 16, "wins": 3, "collisions_per_race": 1.12}}}
+    w = b.weighted_rates(row, {"asphalt": 5, "dirt": 1})
+    assert w["finished"] == pytest.approx(5 / 6 * 20 / 24 + 1 / 6 * 16 / 24)
+    assert w["wins"] == pytest.approx(5 / 6 * 17 / 24 + 1 / 6 * 3 / 24)  # 0.611
+    assert w["collisions_per_race"] == pytest.approx(5 / 6 * 0.79 + 1 / 6 * 1.12)
+    assert not b.eligible(row, 0.75, 0.5, 1.0)  # pooled: 20 of 48 wins
+    assert b.eligible(row, 0.75, 0.5, 1.0, {"asphalt": 5, "dirt": 1})  # weighted: 0.61 of the races
+    assert not b.eligible(row, 0.75, 0.5, 1.0, {"asphalt": 0, "dirt": 1})  # dirt only: 3 of 24 wins
+    assert b.weighted_rates(row, {"asphalt": 1, "dirt": 1})["wins"] == pytest.approx(20 / 48)  # equal weights: pooled
+
+
+@pytest.mark.parametrize("argv,match", [
+    (["--surface-weights", "asphalt=5"], "needs --surfaces"),
+    (["--surfaces", "asphalt", "dirt", "--surface-weights", "asphalt=5"], "missing: dirt"),
+    (["--surfaces", "asphalt", "dirt", "--surface-weights", "asphalt=5", "dirt=1", "wet=2"], "not raced"),
+    (["--surfaces", "asphalt", "dirt", "--surface-weights", "asphalt=-1", "dirt=1"], "W >= 0"),
+    (["--surfaces", "asphalt", "dirt", "--surface-weights", "asphalt", "dirt=1"], "SURFACE=W"),
+    (["--surfaces", "asphalt", "dirt", "--surface-weights", "asphalt=0", "dirt=0"], "all weights are 0"),
+])
+def test_bad_surface_weights_are_refused_in_one_line_before_any_race(argv, match):
+    with pytest.raises(SystemExit) as err:
+        _bench().main(["--policy", "racer_bold", "--tracks", "oval", *argv])
+    assert match in str(err.value) and str(err.value).startswith("race_screen: ") and "\n" not in str(err.value)
