@@ -19,6 +19,13 @@ each surface's finished share, win share and collisions a race, weighted (``5/6 
 track on both surfaces weighs dirt half; the held-out race protocol (``set:heldout``) has one dirt track of six, so
 weights 5 and 1 make the training screen's mix the held-out one without racing fewer dirt races.
 
+``--baseline B`` compares every policy with B race by race: the same seed gives every policy the same races (grid slot,
+opponents' paces, env seed per track, surface and episode), so the difference in finished share, win share and
+collisions a race is paired, and its 95 % bootstrap interval (races resampled within each surface, 2,000 draws, seeded)
+says whether a few races' difference is more than the draw of races. B is one of ``--policy`` or the
+``race_episodes.csv`` a screen wrote with ``--out`` (a screen of the same races; anything else is refused in one line),
+so the incumbent need not be raced again.
+
 Selection happens on training tracks only: a held-out track (``set:heldout``, a bundled held-out track or a generated
 track of the held-out seed range) is refused in one line; measure those once, after the choice, with
 ``python -m torcsrl.evaluate mode=race tracks=set:heldout``.
@@ -82,9 +89,63 @@ def screen(policies: list[str], tracks: list[str], *, episodes: int = 3, pace: t
         raced = dict.fromkeys(r["surface"] for r in res["episodes"])  # in the order raced
         by_surface = {s: race_summary([r for r in res["episodes"] if r["surface"] == s]) for s in raced}
         rows.append({"policy": str(spec), **{k: tot[k] for k in ("races", "finished", "wins", "collisions_per_race", "scenarios")},
-                     "wall_s": time.perf_counter() - t0,
+                     "wall_s": time.perf_counter() - t0, "race_rows": [_race_key(r) for r in res["episodes"]],
                      "by_surface": {s: {k: v[k] for k in ("races", "finished", "wins", "collisions_per_race")} for s, v in by_surface.items()}})
     return rows
+
+
+def _race_key(r: dict) -> dict:
+    """What a paired comparison needs of one race (an episode row of :func:`torcsrl.evaluate.race.evaluate_race`)."""
+    return {"track": str(r["track"]), "surface": str(r["surface"]), "episode": int(r["episode"]), "env_seed": int(r["env_seed"]),
+            "finished": r["position"] is not None, "win": bool(r["win"]), "collisions": float(r["collisions"])}
+
+
+def read_races(path: str | Path) -> list[dict]:
+    """The races of a screen's ``race_episodes.csv`` (``--out``) in :func:`_race_key`'s form; SystemExit (one line) if
+    it is not such a file."""
+    import csv
+
+    try:
+        with open(path, newline="") as f:
+            rows = list(csv.DictReader(f))
+        return [{"track": r["track"], "surface": r["surface"], "episode": int(r["episode"]), "env_seed": int(r["env_seed"]),
+                 "finished": r["position"] not in ("", "None"), "win": r["win"] == "True", "collisions": float(r["collisions"])}
+                for r in rows]
+    except (OSError, KeyError, ValueError) as err:
+        raise SystemExit(f"race_screen: baseline {str(path)!r} is not a race_episodes.csv written by race_screen --out "
+                         f"({type(err).__name__}: {err})") from None
+
+
+def paired_delta(races: list[dict], base: list[dict], weights: dict[str, float] | None = None, n_boot: int = 2000,
+                 seed: int = 0, ci: float = 0.95) -> dict[str, tuple[float, float, float]]:
+    """``races`` minus ``base``, race by race: ``{"finished" | "wins" | "collisions_per_race": (delta, lo, hi)}`` with a
+    percentile bootstrap interval (races resampled within each surface; the surfaces combined with ``weights``, or by
+    their race counts). SystemExit (one line) unless both are the same races (track, surface, episode, env seed)."""
+    import numpy as np
+
+    def key(r: dict) -> tuple:
+        return r["track"], r["surface"], r["episode"]
+
+    b = {key(r): r for r in base}
+    a = {key(r): r for r in races}
+    if set(a) != set(b) or any(a[k]["env_seed"] != b[k]["env_seed"] for k in a) or len(a) != len(races):
+        raise SystemExit(f"race_screen: the baseline raced other races ({len(b)} races) than this screen ({len(a)}); "
+                         "compare screens of the same tracks, surfaces, episodes and seed")
+    surfaces = list(dict.fromkeys(k[1] for k in a))
+    n = {s: sum(k[1] == s for k in a) for s in surfaces}
+    w = {s: (weights[s] if weights else n[s]) for s in surfaces}
+    tot = sum(w.values())
+    rng = np.random.default_rng(seed)
+    out = {}
+    for m, field in (("finished", "finished"), ("wins", "win"), ("collisions_per_race", "collisions")):
+        est, boot = 0.0, np.zeros(n_boot)
+        for s in surfaces:
+            d = np.array([float(a[k][field]) - float(b[k][field]) for k in sorted(a) if k[1] == s])
+            est += w[s] / tot * d.mean()
+            boot += w[s] / tot * d[rng.integers(0, len(d), size=(n_boot, len(d)))].mean(axis=1)
+        lo, hi = np.quantile(boot, [(1 - ci) / 2, 1 - (1 - ci) / 2])
+        out[m] = (float(est), float(lo), float(hi))
+    return out
 
 
 def parse_surface_weights(items: list[str], surfaces: list[str] | None) -> dict[str, float]:
@@ -150,9 +211,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-collisions", type=float, default=1.0, help="collisions a race to be eligible")
     ap.add_argument("--surface-weights", nargs="+", default=None, metavar="SURFACE=W",
                     help="judge eligibility on surface-weighted rates, e.g. asphalt=5 dirt=1 (the held-out race mix); needs --surfaces")
+    ap.add_argument("--baseline", default=None,
+                    help="compare each policy race by race with this one: one of --policy, or a race_episodes.csv of an earlier --out")
     ap.add_argument("--out", default=None, help="write each policy's race tables and plots under OUT/<policy>")
     a = ap.parse_args(argv)
     weights = parse_surface_weights(a.surface_weights, a.surfaces) if a.surface_weights else None
+    base_csv = a.baseline is not None and a.baseline.endswith(".csv")
+    if a.baseline is not None and not base_csv and a.baseline not in a.policy:
+        raise SystemExit(f"race_screen: --baseline {a.baseline!r} is neither one of --policy ({' '.join(a.policy)}) "
+                         "nor a race_episodes.csv written by an earlier --out")
+    base_races = read_races(a.baseline) if base_csv else None
     torch.set_num_threads(1)
     rows = screen(a.policy, a.tracks, episodes=a.episodes, pace=tuple(a.pace), laps=a.laps, opponents=a.opponents,
                   seed=a.seed, workers=a.workers, out=a.out, surfaces=a.surfaces)
@@ -183,6 +251,19 @@ def main(argv: list[str] | None = None) -> int:
             w = weighted_rates(r, weights)
             ok = eligible(r, a.min_finished, a.min_wins, a.max_collisions, weights)
             print(f"| {r['policy']} | {w['finished']:.3f} | {w['wins']:.3f} | {w['collisions_per_race']:.2f} | {'yes' if ok else 'no'} |")
+    if a.baseline is not None:
+        base = base_races if base_csv else next(r["race_rows"] for r in rows if r["policy"] == a.baseline)
+        mix = "surface-weighted" if weights else "pooled"
+        print(f"\npaired with {a.baseline} (the same {len(base)} races; {mix}; 95 % bootstrap over races within each surface, "
+              "2000 draws, seed 0):")
+        print("| policy | Δ finished share | Δ win share | Δ collisions / race |")
+        print("|---|---:|---:|---:|")
+        for r in rows:
+            if r["policy"] == a.baseline:
+                continue
+            d = paired_delta(r["race_rows"], base, weights)
+            print(f"| {r['policy']} | " + " | ".join(f"{d[m][0]:+.3f} [{d[m][1]:+.3f}, {d[m][2]:+.3f}]"
+                                                    for m in ("finished", "wins", "collisions_per_race")) + " |")
     return 0
 
 

@@ -96,3 +96,54 @@ def test_bad_surface_weights_are_refused_in_one_line_before_any_race(argv, match
     with pytest.raises(SystemExit) as err:
         _bench().main(["--policy", "racer_bold", "--tracks", "oval", *argv])
     assert match in str(err.value) and str(err.value).startswith("race_screen: ") and "\n" not in str(err.value)
+
+
+def _races(wins: list[int], surface: str = "asphalt", coll: float = 0.0) -> list[dict]:
+    return [{"track": "oval", "surface": surface, "episode": e, "env_seed": 100 + e, "finished": True, "win": bool(w),
+             "collisions": coll} for e, w in enumerate(wins)]
+
+
+def test_paired_delta_is_race_by_race_with_a_bootstrap_interval():
+    b = _bench()
+    base = _races([0] * 10) + _races([0] * 10, "dirt", coll=1.0)
+    same = b.paired_delta(base, base)
+    assert all(v == (0.0, 0.0, 0.0) for v in same.values())  # a policy against itself: no difference, no spread
+    better = _races([1] * 8 + [0] * 2) + _races([0] * 10, "dirt", coll=1.0)
+    d = b.paired_delta(better, base)
+    assert d["wins"][0] == pytest.approx(8 / 20) and d["wins"][1] <= d["wins"][0] <= d["wins"][2]
+    assert d["wins"][1] > 0  # 8 of 10 asphalt races won more: beyond the draw of races
+    dw = b.paired_delta(better, base, {"asphalt": 5, "dirt": 1})
+    assert dw["wins"][0] == pytest.approx(5 / 6 * 0.8)  # weighted to the held-out mix
+    one = _races([1] + [0] * 9) + _races([0] * 10, "dirt", coll=1.0)
+    assert b.paired_delta(one, base)["wins"][1] == 0.0  # one race's difference: the interval reaches 0
+    assert b.paired_delta(one, base, seed=3) == b.paired_delta(one, base, seed=3)  # seeded
+    with pytest.raises(SystemExit) as err:
+        b.paired_delta(_races([1] * 9), _races([1] * 10))
+    assert "other races" in str(err.value) and "\n" not in str(err.value)
+    moved = [dict(r, env_seed=r["env_seed"] + 1) for r in _races([1] * 10)]
+    with pytest.raises(SystemExit):
+        b.paired_delta(moved, _races([1] * 10))  # same names, another seed: not the same races
+
+
+def test_baseline_from_an_earlier_screen_pairs_the_same_races(tmp_path, capsys):
+    b = _bench()
+    args = ["--policy", "racer_bold", "--tracks", "oval", "--episodes", "2", "--laps", "1", "--opponents", "1"]
+    assert b.main([*args, "--out", str(tmp_path)]) == 0
+    csv_path = tmp_path / "racer_bold" / "race_episodes.csv"
+    assert len(b.read_races(csv_path)) == 2
+    capsys.readouterr()
+    assert b.main([*args, "--policy", "racer_bold", "racer_safe:2", "--baseline", str(csv_path)]) == 0
+    out = capsys.readouterr().out.split("paired with")[1]
+    cells = {line.split("|")[1].strip(): line for line in out.splitlines() if line.startswith("| racer")}
+    assert cells["racer_bold"].count("+0.000 [+0.000, +0.000]") == 3  # the same driver on the same races: seeded, equal
+    assert "racer_safe:2" in cells
+    with pytest.raises(SystemExit) as err:
+        b.main([*args, "--baseline", "reference_racer"])
+    assert "neither one of --policy" in str(err.value) and "\n" not in str(err.value)
+    with pytest.raises(SystemExit) as err:
+        b.main([*args, "--baseline", str(tmp_path / "nope.csv")])
+    assert "is not a race_episodes.csv" in str(err.value) and "\n" not in str(err.value)
+    with pytest.raises(SystemExit) as err:  # 1 race a track against a screen of 2: not the same races
+        b.main(["--policy", "racer_bold", "--tracks", "oval", "--episodes", "1", "--laps", "1", "--opponents", "1",
+                "--baseline", str(csv_path)])
+    assert "other races" in str(err.value)
