@@ -80,3 +80,31 @@ def test_env_draws_named_and_pool_tracks_per_episode_from_its_seed():
         assert redrawn == drawn
     finally:
         again.close()
+
+
+def test_the_walls_of_a_pool_track_are_built_when_it_is_first_drawn_and_read_as_if_built_up_front():
+    """The rangefinder's edge walls of a procedural pool are built lazily (a pool of 100 built up front cost 4-7 s an
+    env): only the slots drawn so far have walls, and the beams read exactly what walls built at construction read."""
+    import numpy as np
+
+    kw = dict(track="oval", procedural={"seeds": [30_000, 40_000], "pool": 6, "share": 1.0, "generator": "gen"}, start="random")
+    lazy, eager = make_env(seed=5, **kw), make_env(seed=5, **kw)
+    try:
+        for slot, t in enumerate(eager.core._geometry):  # the old way: every slot's walls at construction
+            eager.core.rangefinder.add_track(slot, t)
+        drawn = {0}  # the initial track (slot 0: oval)
+        assert set(lazy.core.rangefinder._bodies) == drawn
+        for _ in range(4):
+            a, b = lazy.reset(), eager.reset()
+            drawn.add(int(lazy.core.slot[0]))
+            assert set(lazy.core.rangefinder._bodies) == drawn
+            act = lazy.action_spec.zero()
+            act[..., 1] = 0.6  # throttle: the beams sweep the walls as the car moves
+            for _ in range(15):
+                np.testing.assert_array_equal(a["rangefinder"].numpy(), b["rangefinder"].numpy())
+                a = lazy.step(a.set("action", act.clone()))["next"]
+                b = eager.step(b.set("action", act.clone()))["next"]
+        assert len(lazy.core.rangefinder._bodies) < len(eager.core.rangefinder._bodies) == 7
+    finally:
+        lazy.close()
+        eager.close()

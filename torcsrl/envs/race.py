@@ -248,10 +248,7 @@ class RaceCore:
         #: World origin [m] of each track slot: tracks lie 10 km apart, so that cameras never see
         #: another slot's track, and each car drives at its own track's origin.
         self.track_origins = np.array([[k * TRACK_SPACING_M, 0.0] for k in range(len(self._geometry))])
-        self._variants: dict[tuple[int, str | None], Any] = {}
-        if self.rangefinder is not None:
-            for slot, t in enumerate(self._geometry):
-                self.rangefinder.add_track(slot, t)
+        self._variants: dict[tuple[int, str | None], Any] = {}  # a slot's walls are built on its first use (_variant)
         self.camera = None
         self._camera_cfg = dict(camera) if camera else {}
         if "pixels" in self.sensors or "depth" in self.sensors:
@@ -290,9 +287,14 @@ class RaceCore:
 
     # ------------------------------------------------------------------ setup helpers
     def _variant(self, slot: int, surface: str | None):
+        """Track ``slot`` on ``surface`` (the slot's own when None), cached; the first use of a slot builds its edge walls
+        in the rangefinder's world: every car gets its track here, so a procedural pool of 100 tracks builds only the
+        walls of the tracks drawn (4-7 s an env before; the beams read the same either way)."""
         key = (slot, surface)
         if key not in self._variants:
             t = self._geometry[slot]
+            if self.rangefinder is not None:
+                self.rangefinder.add_track(slot, t)
             self._variants[key] = t.with_surface(surface) if surface else t
         return self._variants[key]
 
