@@ -244,7 +244,8 @@ class RaceCore:
         self._obs_all: dict[str, np.ndarray] = {}
         self.start_back = np.zeros(self.n)  # how far behind its race's start point each car started [m] (laps count from there)
         self.rangefinder = Rangefinder(rangefinder_angles_deg, rangefinder_range_m) if "rangefinder" in self._all_keys else None
-        self._geometry = [_tracks.load(name) for name in self.track_names]  # one slot per distinct entry
+        #: one slot per distinct entry: the named tracks loaded now (a bad one fails here), a procedural pool's on first use
+        self._geometry = _TrackSlots(self.track_names, loaded=self.n_named)
         #: World origin [m] of each track slot: tracks lie 10 km apart, so that cameras never see
         #: another slot's track, and each car drives at its own track's origin.
         self.track_origins = np.array([[k * TRACK_SPACING_M, 0.0] for k in range(len(self._geometry))])
@@ -1006,6 +1007,29 @@ class _LearnerView:
         k = len(c._geometry)
         g = np.arange(k * c.n_learners) // k
         return c.track_origins[np.arange(k * c.n_learners) % k] + np.stack([np.zeros(len(g)), g * TRACK_SPACING_M], 1)
+
+
+class _TrackSlots(Sequence):
+    """The base :class:`~torcsrl.envs.track.Track` of each slot, by name, loaded on first access: the first ``loaded``
+    at once, the rest (a procedural pool of ~100 generated tracks, ~10 ms each) when a car first draws them. A
+    generated track is a function of its name, so the order of loading changes nothing."""
+
+    def __init__(self, names: Sequence[str], loaded: int = 0) -> None:
+        self._names = list(names)
+        self._tracks: list[Any] = [None] * len(self._names)
+        for i in range(min(int(loaded), len(self._names))):
+            self[i]
+
+    def __len__(self) -> int:
+        return len(self._names)
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            return [self[j] for j in range(*i.indices(len(self)))]
+        t = self._tracks[i]
+        if t is None:
+            t = self._tracks[i] = _tracks.load(self._names[i])
+        return t
 
 
 class _Cycle:
