@@ -213,7 +213,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="judge eligibility on surface-weighted rates, e.g. asphalt=5 dirt=1 (the held-out race mix); needs --surfaces")
     ap.add_argument("--baseline", default=None,
                     help="compare each policy race by race with this one: one of --policy, or a race_episodes.csv of an earlier --out")
-    ap.add_argument("--out", default=None, help="write each policy's race tables and plots under OUT/<policy>")
+    ap.add_argument("--out", default=None, help="write each policy's race tables and plots under OUT/<policy>, the screen as OUT/screen.json")
     a = ap.parse_args(argv)
     weights = parse_surface_weights(a.surface_weights, a.surfaces) if a.surface_weights else None
     base_csv = a.baseline is not None and a.baseline.endswith(".csv")
@@ -261,10 +261,36 @@ def main(argv: list[str] | None = None) -> int:
         for r in rows:
             if r["policy"] == a.baseline:
                 continue
-            d = paired_delta(r["race_rows"], base, weights)
+            d = r["paired"] = paired_delta(r["race_rows"], base, weights)
             print(f"| {r['policy']} | " + " | ".join(f"{d[m][0]:+.3f} [{d[m][1]:+.3f}, {d[m][2]:+.3f}]"
                                                     for m in ("finished", "wins", "collisions_per_race")) + " |")
+    if a.out:
+        write_summary(Path(a.out) / "screen.json", a, rows, weights)
     return 0
+
+
+def write_summary(path: Path, a: argparse.Namespace, rows: list[dict], weights: dict[str, float] | None) -> None:
+    """The screen as one JSON file (written atomically): the protocol, the thresholds and, per policy, the counts, the
+    per-surface counts, the surface-weighted rates, the eligibility and the paired difference from the baseline."""
+    import json
+    import os
+
+    protocol = {k: getattr(a, k) for k in ("tracks", "surfaces", "episodes", "pace", "laps", "opponents", "seed",
+                                           "min_finished", "min_wins", "max_collisions", "baseline")}
+    out = {"protocol": {**protocol, "pace": list(a.pace), "surface_weights": weights}, "policies": []}
+    for r in rows:
+        item = {k: v for k, v in r.items() if k not in ("race_rows", "paired")}
+        item["eligible"] = eligible(r, a.min_finished, a.min_wins, a.max_collisions, weights)
+        if weights:
+            item["weighted"] = weighted_rates(r, weights)
+        if "paired" in r:
+            item["paired"] = {m: {"delta": d, "ci95": [lo, hi]} for m, (d, lo, hi) in r["paired"].items()}
+        out["policies"].append(item)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(out, indent=1))
+    os.replace(tmp, path)
+    print(f"wrote {path}")
 
 
 if __name__ == "__main__":

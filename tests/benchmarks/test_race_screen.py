@@ -3,6 +3,8 @@ prints its table with the eligibility computed from the races."""
 
 from __future__ import annotations
 
+import json
+
 import pytest
 from _bench import load_benchmark
 
@@ -45,10 +47,10 @@ def test_an_off_road_surface_or_an_unknown_track_is_refused_in_one_line(argv, ma
     assert match in str(err.value) and str(err.value).startswith("race_screen: ") and "\n" not in str(err.value)
 
 
-def test_surfaces_race_every_track_on_each_and_an_unknown_surface_is_refused_in_one_line(capsys):
+def test_surfaces_race_every_track_on_each_and_an_unknown_surface_is_refused_in_one_line(capsys, tmp_path):
     b = _bench()
     assert b.main(["--policy", "racer_bold", "--tracks", "oval", "--surfaces", "asphalt", "dirt", "--episodes", "1",
-                   "--laps", "1", "--opponents", "1", "--surface-weights", "asphalt=5", "dirt=1"]) == 0
+                   "--laps", "1", "--opponents", "1", "--surface-weights", "asphalt=5", "dirt=1", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "oval on asphalt dirt" in out
     row = next(line for line in out.splitlines() if line.startswith("| racer_bold |"))
@@ -64,6 +66,10 @@ def test_surfaces_race_every_track_on_each_and_an_unknown_surface_is_refused_in_
     assert float(w[1]) == pytest.approx(5 / 6 * int(asp[3]) + 1 / 6 * int(dirt[3]), abs=1e-3)
     assert float(w[2]) == pytest.approx(5 / 6 * int(asp[4]) + 1 / 6 * int(dirt[4]), abs=1e-3)
     assert float(w[3]) == pytest.approx(5 / 6 * float(asp[5]) + 1 / 6 * float(dirt[5]), abs=0.01)
+    summary = json.loads((tmp_path / "screen.json").read_text())  # the same numbers, machine-readable
+    assert summary["protocol"]["surface_weights"] == {"asphalt": 5.0, "dirt": 1.0}
+    (pol,) = summary["policies"]
+    assert pol["weighted"]["wins"] == pytest.approx(float(w[2]), abs=1e-3) and set(pol["by_surface"]) == {"asphalt", "dirt"}
     with pytest.raises(SystemExit) as err:
         b.main(["--policy", "racer_bold", "--tracks", "oval", "--surfaces", "lava"])
     assert "unknown surface 'lava'" in str(err.value) and "asphalt" in str(err.value) and "\n" not in str(err.value)
@@ -137,6 +143,10 @@ def test_baseline_from_an_earlier_screen_pairs_the_same_races(tmp_path, capsys):
     cells = {line.split("|")[1].strip(): line for line in out.splitlines() if line.startswith("| racer")}
     assert cells["racer_bold"].count("+0.000 [+0.000, +0.000]") == 3  # the same driver on the same races: seeded, equal
     assert "racer_safe:2" in cells
+    first = json.loads((tmp_path / "screen.json").read_text())  # the first screen's summary (no baseline)
+    (pol,) = first["policies"]
+    assert pol["policy"] == "racer_bold" and pol["races"] == 2 and "paired" not in pol and first["protocol"]["laps"] == 1
+    assert pol["eligible"] == b.eligible(pol, 0.75, 0.5, 1.0)
     with pytest.raises(SystemExit) as err:
         b.main([*args, "--baseline", "reference_racer"])
     assert "neither one of --policy" in str(err.value) and "\n" not in str(err.value)
