@@ -133,19 +133,18 @@ def test_paired_delta_is_race_by_race_with_a_bootstrap_interval():
 
 def test_baseline_from_an_earlier_screen_pairs_the_same_races(tmp_path, capsys):
     b = _bench()
-    args = ["--policy", "racer_bold", "--tracks", "oval", "--episodes", "2", "--laps", "1", "--opponents", "1"]
+    args = ["--policy", "racer_bold", "--tracks", "oval", "--episodes", "1", "--laps", "1", "--opponents", "1"]
     assert b.main([*args, "--out", str(tmp_path)]) == 0
     csv_path = tmp_path / "racer_bold" / "race_episodes.csv"
-    assert len(b.read_races(csv_path)) == 2
+    assert len(b.read_races(csv_path)) == 1
     capsys.readouterr()
-    assert b.main([*args, "--policy", "racer_bold", "racer_safe:2", "--baseline", str(csv_path)]) == 0
+    assert b.main([*args, "--baseline", str(csv_path)]) == 0  # the same driver raced again, paired with its CSV
     out = capsys.readouterr().out.split("paired with")[1]
     cells = {line.split("|")[1].strip(): line for line in out.splitlines() if line.startswith("| racer")}
     assert cells["racer_bold"].count("+0.000 [+0.000, +0.000]") == 3  # the same driver on the same races: seeded, equal
-    assert "racer_safe:2" in cells
     first = json.loads((tmp_path / "screen.json").read_text())  # the first screen's summary (no baseline)
     (pol,) = first["policies"]
-    assert pol["policy"] == "racer_bold" and pol["races"] == 2 and "paired" not in pol and first["protocol"]["laps"] == 1
+    assert pol["policy"] == "racer_bold" and pol["races"] == 1 and "paired" not in pol and first["protocol"]["laps"] == 1
     assert pol["eligible"] == b.eligible(pol, 0.75, 0.5, 1.0)
     with pytest.raises(SystemExit) as err:
         b.main([*args, "--baseline", "reference_racer"])
@@ -153,7 +152,6 @@ def test_baseline_from_an_earlier_screen_pairs_the_same_races(tmp_path, capsys):
     with pytest.raises(SystemExit) as err:
         b.main([*args, "--baseline", str(tmp_path / "nope.csv")])
     assert "is not a race_episodes.csv" in str(err.value) and "\n" not in str(err.value)
-    with pytest.raises(SystemExit) as err:  # 1 race a track against a screen of 2: not the same races
-        b.main(["--policy", "racer_bold", "--tracks", "oval", "--episodes", "1", "--laps", "1", "--opponents", "1",
-                "--baseline", str(csv_path)])
+    with pytest.raises(SystemExit) as err:  # another seed: the same (track, surface, episode), another race
+        b.main([*args, "--seed", "1", "--baseline", str(csv_path)])
     assert "other races" in str(err.value)
