@@ -16,7 +16,7 @@ on each track is driven once (2 laps) at the same control rate as the driver.
     python benchmarks/generalisation.py --policy RUN_DIR --curve       # held-out completion against training frames -> PNG
 
 ``--screen`` drives the training tracks instead (``set:train`` and ``gen-10001 … gen-10008`` from the training
-seed range): the selection screen a shipped driver is chosen on (``--laps 1``). ``--starts K`` drives every trial
+seed range; ``--generated N`` for ``10001 … 10000+N``, ``--generator proc --no-bundled`` for circuits only): the selection screen a shipped driver is chosen on (``--laps 1``). ``--starts K`` drives every trial
 from K starts — the grid, then K-1 seeded random points of the lap (the same for every driver) — so one unlucky
 braking point weighs 1/K of a track instead of the whole track (the counts are then trials, K per track). ``--curve`` drives every checkpoint of each run folder (``--curve-laps`` laps, default 1) on the same tracks
 and plots completion against frames (``--out``/curve.png). ``--train SEEDS`` first trains the recipe
@@ -142,7 +142,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--policy", nargs="+", default=[], help="checkpoints, run folders, reference, expert, heuristic")
     ap.add_argument("--train", nargs="*", type=int, default=None, help="train experiment=generalise with these seeds first")
     ap.add_argument("--laps", type=int, default=10)
-    ap.add_argument("--generated", type=int, default=20, help="held-out generated tracks (seeds 0..N-1)")
+    ap.add_argument("--generated", type=int, default=None,
+                    help="generated tracks: held-out seeds 0..N-1 (default 20); with --screen training-range seeds 10001..10000+N (default 8)")
     ap.add_argument("--generator", choices=("gen", "proc"), default="gen")
     ap.add_argument("--no-bundled", action="store_true",
                     help="drive only the generated tracks (e.g. 2-lap trials of them beside a 10-lap run of set:heldout)")
@@ -181,10 +182,12 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("give --policy and/or --train")
     if args.screen:  # what a shipped driver is chosen on: training tracks and training-range seeds, never held-out ones
         heldout = _tracks.resolve("set:train")
-        generated = [f"{'proc' if args.generator == 'proc' else 'gen'}-{s}" for s in range(10001, 10009)]
+        n = 8 if args.generated is None else args.generated  # training-range seeds 10001 .. 10000+N
+        generated = [f"{'proc' if args.generator == 'proc' else 'gen'}-{s}" for s in range(10001, 10001 + n)]
     else:
         heldout = _tracks.resolve("set:heldout")
-        generated = heldout_names(args.generated, args.generator) if args.generated else []
+        n = 20 if args.generated is None else args.generated
+        generated = heldout_names(n, args.generator) if n else []
     tracks = (generated if args.no_bundled else heldout + generated)
     if not tracks:
         ap.error("no tracks to drive: --no-bundled needs --generated N > 0")

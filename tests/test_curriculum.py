@@ -239,12 +239,22 @@ def test_training_goes_through_stages_and_resumes_the_stage_exactly(tmp_path, mo
     ({"a": {"promote": {"metric": "clean"}}, "b": {}}, r"give exactly one threshold, at_least or at_most"),
     ({"a": {"promote": {"metric": "clean", "at_least": 1}}, "b": {"overrides": {"env.surface": "lava"}}},
      r"curriculum.stages.b: env.surface: the toy env takes one surface of asphalt, .* got 'lava'"),
+    ({"a": {"promote": {"metric": "clean", "at_least": 1}}, "b": {}, "rehearse": {"stage": "b", "frames": 10}},
+     r"curriculum.rehearse.stage: 'b' is not a stage before the last; allowed: a"),
+    ({"a": {"promote": {"metric": "clean", "at_least": 1}}, "b": {}, "rehearse": {"stage": "a", "frames": 0}},
+     r"curriculum.rehearse.frames: expected a positive integer"),
+    ({"a": {"promote": {"metric": "clean", "at_least": 1}}, "b": {}, "rehearse": {"stage": "a", "frame": 10}},
+     r"curriculum.rehearse.frame: unknown key; allowed: stage, frames"),
     ({"a": {"promote": {"metric": "clean", "at_least": 1}}, "b": {"overrides": {"degradation.severity": 4}}},
      r"curriculum.stages.b: overrides degradation.severity but degradation.stack is empty"),
 ])
 def test_bad_curricula_fail_in_one_line(stages, match):
+    cfg = with_stages(compose_cfg("env=toy"), {k: v for k, v in stages.items() if k != "rehearse"})
+    if "rehearse" in stages:
+        with open_dict(cfg):
+            cfg.curriculum.rehearse = stages["rehearse"]
     with pytest.raises(ConfigError, match=match) as e:
-        validate(with_stages(compose_cfg("env=toy"), stages))
+        validate(cfg)
     assert "\n" not in str(e.value)
 
 
@@ -259,6 +269,8 @@ def test_bad_race_stage_and_algos_without_stages():
         validate(cfg)
     with pytest.raises(ConfigError, match=r"curriculum: algo=ppo does not follow a curriculum .*; allowed: curriculum=none"):
         validate(compose_cfg("algo=ppo", "curriculum=robust"))
+    with pytest.raises(ConfigError, match=r"curriculum.rehearse: algo=td3 cannot rehearse an earlier stage .*; allowed: algo=dagger"):
+        validate(compose_cfg("algo=td3", "curriculum=guppy", "curriculum.rehearse={stage:solo,frames:100}"))
 
 
 def test_bc_refuses_a_curriculum_and_dagger_rounds_follow_its_stages(tmp_path, monkeypatch):
@@ -275,6 +287,7 @@ def test_bc_refuses_a_curriculum_and_dagger_rounds_follow_its_stages(tmp_path, m
         cfg.curriculum.stages.experts.overrides["env.traffic"] = {"opponents": 2, "driver": {"kind": "expert", "pace": 0.5},
                                                                    "start": "grid", "order": "fixed", "learner_slot": "last"}
         cfg.curriculum.stages.experts.overrides["eval.env.traffic"] = None
+        cfg.curriculum.rehearse = {"stage": "solo", "frames": 160}  # every round in experts also drives 160 frames alone
     validate(cfg)
     seen: list = []
     import torcsrl.demos as demos_mod
@@ -290,7 +303,12 @@ def test_bc_refuses_a_curriculum_and_dagger_rounds_follow_its_stages(tmp_path, m
     monkeypatch.setattr(demos_mod, "make_demo_env", spy_demo_env)
     out = train(cfg)
     assert out["train/stage_name"] == "experts" and out["train/stage"] == 1
-    assert seen[0] == 0 and seen[-1] == 2  # the demonstrations alone, the last DAgger round among 2 cars
+    # the demonstrations alone; then each DAgger round among 2 cars, and its rehearsal alone (curriculum.rehearse)
+    assert seen == [0, 2, 0, 2, 0]
+    ck = load_checkpoint(out["checkpoint"])
+    assert ck["counters"]["frames"] == 2 * (150 + 160)
+    rehearsed = [v for _, v in read_csv_metric(tmp_path, "train/rehearsal_episodes")]
+    assert len(rehearsed) == 2 and min(rehearsed) >= 1  # 160 frames of 150-step episodes: at least one ends per round
     summary = json.loads((tmp_path / "curriculum.json").read_text())
     assert summary["stage"] == 1 and [h["to"] for h in summary["promotions"]] == ["experts"]
     ck = load_checkpoint(out["checkpoint"])

@@ -30,6 +30,11 @@ metrics (:data:`METRICS`), keeps it for the stage, and promotes when ``over`` (k
 
 and the stage has trained ``min_frames`` frames at least. Validations of an earlier stage never count for a later one.
 
+**Rehearsal** (``rehearse: {stage: <name>, frames: N}``, ``algo=dagger`` only): once training has left the named
+stage, every DAgger round also drives N frames in that stage's env (its config, :meth:`Curriculum.config` at that
+stage), labelled by the teacher like the round's own — so a student that moves on to traffic keeps being corrected
+where it drives alone (rehearsal against forgetting an earlier task; the round's own frames are unchanged).
+
 **The loop's interface** (:mod:`torcsrl.train`): ``Curriculum.from_config(cfg)``; ``config(cfg)`` the stage's config
 (with no stages: ``cfg`` itself); ``observe(eval_metrics, frames, episodes)`` after each validation, returning the
 promotion event (or None) after which the loop rebuilds the training env, its collector and the validation envs;
@@ -47,7 +52,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-__all__ = ["Curriculum", "CurriculumError", "Criterion", "Stage", "METRICS", "RULES", "FIXED_ENV_KEYS", "problems"]
+__all__ = ["Curriculum", "CurriculumError", "Criterion", "Stage", "Rehearsal", "METRICS", "RULES", "FIXED_ENV_KEYS", "problems"]
 
 #: What a criterion may read from a validation (``torcsrl.train.validate_all``):
 METRICS = {
@@ -68,6 +73,8 @@ FIXED_ENV_KEYS = ("name", "sensors", "camera", "num_cars", "normalize", "action_
                   "vehicle_overrides", "rangefinder_angles_deg", "rangefinder_range_m", "seed", "device")
 _CRITERION_KEYS = ("metric", "at_least", "at_most", "over", "rule", "min_frames")
 _STAGE_KEYS = ("overrides", "promote")
+_CURRICULUM_KEYS = ("stages", "rehearse")
+_REHEARSE_KEYS = ("stage", "frames")
 
 
 class CurriculumError(ValueError):
@@ -157,12 +164,23 @@ class Stage:
     promote: Criterion | None = None
 
 
+@dataclass(frozen=True)
+class Rehearsal:
+    """``curriculum.rehearse``: after leaving stage ``stage`` (its index), every DAgger round also drives ``frames``
+    frames [env steps] in that stage's env."""
+
+    stage: int
+    name: str
+    frames: int
+
+
 class Curriculum:
     """The stages of ``cfg.curriculum`` and where training stands in them (see the module docstring)."""
 
-    def __init__(self, stages: list[Stage], lap_target: int = 1):
+    def __init__(self, stages: list[Stage], lap_target: int = 1, rehearse: Rehearsal | None = None):
         self.stages = list(stages)
         self.lap_target = int(lap_target)
+        self.rehearse = rehearse
         self.stage = 0
         self.values: list[float] = []  # the criterion's numbers of this stage's validations
         self.entered_frames = 0  # frames collected when this stage began
@@ -176,9 +194,9 @@ class Curriculum:
         override of a key a stage may not change."""
         cur = cfg.get("curriculum") if cfg is not None else None
         raw = OmegaConf.to_container(cur, resolve=False) if isinstance(cur, DictConfig) else (dict(cur) if cur else {})
-        unknown = [k for k in raw if k != "stages"]
+        unknown = [k for k in raw if k not in _CURRICULUM_KEYS]
         if unknown:
-            raise CurriculumError(f"curriculum.{unknown[0]}: unknown key; allowed: stages (conf/curriculum/none.yaml)")
+            raise CurriculumError(f"curriculum.{unknown[0]}: unknown key; allowed: {', '.join(_CURRICULUM_KEYS)} (conf/curriculum/none.yaml)")
         stages_raw = raw.get("stages") or {}
         if not isinstance(stages_raw, Mapping):
             raise CurriculumError(f"curriculum.stages: expected a mapping of named stages {{<name>: {{overrides, promote}}}}, got {stages_raw!r}")
@@ -208,7 +226,7 @@ class Curriculum:
             stages.append(Stage(name, {str(k): _plain(v) for k, v in ov.items()}, crit))
         ev = cfg.get("eval") if cfg is not None else None
         lap_limit = ev.get("lap_limit") if ev is not None else None
-        return cls(stages, int(lap_limit or 1))
+        return cls(stages, int(lap_limit or 1), _rehearsal(raw.get("rehearse"), [s.name for s in stages]))
 
     # ---- the stage's config ----------------------------------------------------------------------------------
     @property
@@ -241,6 +259,11 @@ class Curriculum:
                                               f"mapping ({parent}: {{...}}) in this or an earlier stage")
                     OmegaConf.update(out, key, copy.deepcopy(value), merge=False, force_add=True)
         return out
+
+    def rehearsal(self) -> Rehearsal | None:
+        """The rehearsal a DAgger round of the current stage drives (None: none configured, or not past its stage yet)."""
+        r = self.rehearse
+        return r if r is not None and self.stage > r.stage else None
 
     # ---- promotion -------------------------------------------------------------------------------------------
     def observe(self, metrics: Mapping[str, float], frames: int, episodes: int = 0) -> dict[str, Any] | None:
@@ -285,6 +308,7 @@ class Curriculum:
         """What ``<run_dir>/curriculum.json`` holds: the stages, the current one and the promotions."""
         return {"stages": [{"name": s.name, "overrides": s.overrides, "promote": asdict(s.promote) if s.promote else None}
                            for s in self.stages],
+                "rehearse": asdict(self.rehearse) if self.rehearse else None,
                 "stage": self.stage, "name": self.name, "promotions": copy.deepcopy(self.history)}
 
 
@@ -332,6 +356,9 @@ def problems(cfg: DictConfig | Mapping, base_problems: list[str]) -> list[str]:
     from torcsrl.agents import IMITATION, ON_POLICY
 
     algo = (cfg.get("algo") or {}).get("name")
+    if cur.rehearse is not None and algo != "dagger":
+        return [f"curriculum.rehearse: algo={algo} cannot rehearse an earlier stage (its collector drives one env); allowed: "
+                "algo=dagger (its rounds drive the rehearsed stage's env beside their own), or curriculum.rehearse=null"]
     if algo in (*IMITATION, *ON_POLICY) and algo != "dagger":
         return [f"curriculum: algo={algo} does not follow a curriculum (its loop has no stages); allowed: curriculum=none, an "
                 "off-policy algo (ddpg, td3, d4pg, sac), or algo=dagger (its rounds follow the stages)"]
@@ -359,6 +386,25 @@ def problems(cfg: DictConfig | Mapping, base_problems: list[str]) -> list[str]:
             staged.curriculum = {"stages": {}}
         out += [f"curriculum.stages.{stage.name}: {line}" for line in config_problems(staged) if line not in base_problems]
     return out
+
+
+def _rehearsal(value: Any, names: list[str]) -> Rehearsal | None:
+    """``curriculum.rehearse``: null, or {stage: <a stage before the last>, frames: <integer >= 1>}."""
+    if value is None:
+        return None
+    where = "curriculum.rehearse"
+    if not isinstance(value, Mapping):
+        raise CurriculumError(f"{where}: expected null or a mapping {{stage: <name>, frames: <frames per DAgger round>}}, got {value!r}")
+    bad = [k for k in value if k not in _REHEARSE_KEYS]
+    if bad:
+        raise CurriculumError(f"{where}.{bad[0]}: unknown key; allowed: {', '.join(_REHEARSE_KEYS)}")
+    stage, frames = value.get("stage"), value.get("frames")
+    earlier = names[:-1]
+    if stage not in earlier:
+        raise CurriculumError(f"{where}.stage: {stage!r} is not a stage before the last; allowed: {', '.join(earlier) or 'none (one stage)'}")
+    if not (isinstance(frames, int) and not isinstance(frames, bool) and frames >= 1):
+        raise CurriculumError(f"{where}.frames: expected a positive integer (env steps per DAgger round), got {frames!r}")
+    return Rehearsal(names.index(stage), str(stage), int(frames))
 
 
 def _plain(v: Any) -> Any:

@@ -12,7 +12,8 @@ as they are.
 With a curriculum (``curriculum=...``, :mod:`torcsrl.curriculum`; ``algo=dagger`` only) the DAgger rounds follow its
 stages: the demonstrations are written in the first stage's env, every round drives the current stage's env and is
 validated in its validation envs, and the stage's criterion reads each round's validation (one validation per round);
-a promotion rebuilds the validation envs. ``train/stage`` is logged, ``<run_dir>/curriculum.json`` holds the
+a promotion rebuilds the validation envs. With ``curriculum.rehearse: {stage, frames}`` every round after that stage
+also drives ``frames`` in the rehearsed stage's env into the round's rows (``train/rehearsal_episodes``). ``train/stage`` is logged, ``<run_dir>/curriculum.json`` holds the
 promotions, and every checkpoint the curriculum's state.
 
 Resuming (``checkpoint.resume=latest`` or a path) continues after the checkpoint's round: the actor, its optimiser,
@@ -111,7 +112,9 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         lr_schedule = str(cfg.algo.get("bc_lr_schedule", "constant"))
         updates = frames = first = 0
         result: dict[str, Any] = {}
-        new_rows = lambda: ReplayBuffer(int(cfg.demos.dagger_frames), batch_size, obs_keys, extra_keys=EXTRA_KEYS,  # noqa: E731
+        rehearse = curriculum.rehearse  # an earlier stage's env driven beside every later round (conf/curriculum/none.yaml)
+        round_rows = int(cfg.demos.dagger_frames) + (rehearse.frames if rehearse is not None else 0)
+        new_rows = lambda: ReplayBuffer(round_rows, batch_size, obs_keys, extra_keys=EXTRA_KEYS,  # noqa: E731
                                         history=frame_history(cfg))
         rows_dir = run_dir / "dagger"
         if ck is not None:  # continue after the checkpoint's round, as the uninterrupted run would
@@ -151,6 +154,20 @@ def train(cfg: DictConfig) -> dict[str, Any]:
                     actor.train()
                 finally:
                     denv.close()
+                rehearsed = curriculum.rehearsal()
+                if rehearsed is not None:  # the same learner and teacher, in the rehearsed stage's env (own seed)
+                    renv = make_demo_env(curriculum.config(cfg, stage=rehearsed.stage), int(cfg.seed) + 31 * rnd + 17)
+                    try:
+                        actor.eval()
+                        rstats = label_rollouts(renv, rehearsed.frames, agg, sigma_max=float(cfg.demos.sigma_max), learner=learner,
+                                                beta=beta, seed=int(cfg.seed) + 31 * rnd + 17, obs_keys=obs_keys,
+                                                teacher=str(cfg.demos.teacher))
+                        actor.train()
+                    finally:
+                        renv.close()
+                    frames += rehearsed.frames
+                    log_metrics(loggers, {"train/rehearsal_episodes": rstats["episodes"], "train/rehearsal_terminated": rstats["terminated"]},
+                                updates)
                 buffers.append(agg)
                 if cfg.checkpoint.buffer:  # kept for a resume (the demonstrations are in their own folder already)
                     save_dir_atomically(rows_dir / f"round_{rnd:03d}", lambda d: agg.dumps(d))  # noqa: B023
