@@ -39,6 +39,20 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
+def track_lists(screen: bool, generator: str = "gen", generated: int | None = None) -> tuple[list[str], list[str]]:
+    """(bundled, generated) track names: with ``screen`` what a shipped driver is chosen on — ``set:train`` and the
+    training-range seeds 10001 .. 10000+N (N default 8) — never a held-out one; else ``set:heldout`` and the held-out
+    seeds 0 .. N-1 (N default 20)."""
+    from torcsrl.envs import tracks as _tracks
+    from torcsrl.envs.tracks.procedural import heldout_names
+
+    if screen:
+        n = 8 if generated is None else int(generated)
+        return _tracks.resolve("set:train"), [f"{'proc' if generator == 'proc' else 'gen'}-{s}" for s in range(10001, 10001 + n)]
+    n = 20 if generated is None else int(generated)
+    return _tracks.resolve("set:heldout"), heldout_names(n, generator) if n else []
+
+
 def _cell(args):
     spec, track, surface, laps, hz, start = args
     import torch
@@ -163,9 +177,6 @@ def main(argv: list[str] | None = None) -> int:
     if args.starts < 1:
         ap.error(f"--starts {args.starts}: expected a whole number >= 1 (1 = from the grid only)")
 
-    from torcsrl.envs import tracks as _tracks
-    from torcsrl.envs.tracks.procedural import heldout_names
-
     specs = list(args.policy)
     if args.train:
         from hydra import compose, initialize_config_dir
@@ -180,14 +191,7 @@ def main(argv: list[str] | None = None) -> int:
             specs.append(str(run_dir))
     if not specs:
         ap.error("give --policy and/or --train")
-    if args.screen:  # what a shipped driver is chosen on: training tracks and training-range seeds, never held-out ones
-        heldout = _tracks.resolve("set:train")
-        n = 8 if args.generated is None else args.generated  # training-range seeds 10001 .. 10000+N
-        generated = [f"{'proc' if args.generator == 'proc' else 'gen'}-{s}" for s in range(10001, 10001 + n)]
-    else:
-        heldout = _tracks.resolve("set:heldout")
-        n = 20 if args.generated is None else args.generated
-        generated = heldout_names(n, args.generator) if n else []
+    heldout, generated = track_lists(args.screen, args.generator, args.generated)
     tracks = (generated if args.no_bundled else heldout + generated)
     if not tracks:
         ap.error("no tracks to drive: --no-bundled needs --generated N > 0")

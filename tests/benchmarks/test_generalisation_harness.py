@@ -59,3 +59,20 @@ def test_several_starts_are_the_grid_then_seeded_random_points(capsys):
     with pytest.raises(SystemExit):
         b.main(["--policy", "heuristic", "--starts", "0"])
     assert "--starts 0: expected a whole number >= 1" in capsys.readouterr().err
+
+
+def test_the_screen_drives_training_tracks_and_training_range_seeds_only():
+    """--screen: set:train and seeds 10001.. (8 by default, --generated N more, proc circuits with --generator proc);
+    without it the held-out set and held-out seeds. No screen track is a held-out one."""
+    from torcsrl.envs import tracks
+    from torcsrl.envs.tracks.procedural import HELDOUT_SEEDS
+
+    b = _bench()
+    bundled, gen = b.track_lists(True)
+    assert bundled == tracks.resolve("set:train") and gen == [f"gen-{s}" for s in range(10001, 10009)]
+    _, proc = b.track_lists(True, "proc", 16)
+    assert proc[0] == "proc-10001" and proc[-1] == "proc-10016" and len(proc) == 16
+    assert not set(tracks.resolve("set:heldout")) & set(bundled)
+    assert all(int(t.split("-")[1]) >= HELDOUT_SEEDS[1] for t in gen + proc)
+    held, hgen = b.track_lists(False, "gen", 3)
+    assert held == tracks.resolve("set:heldout") and len(hgen) == 3 and all(int(t.split("-")[1]) < HELDOUT_SEEDS[1] for t in hgen)
