@@ -230,7 +230,9 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     wall = time.perf_counter() - t_start
     ck = latest_checkpoint(ckpt_dir)
     print(f"[torcsrl] done: {updates} updates in {wall:.1f} s; last checkpoint: {ck}\n"
-          f"[torcsrl] evaluate: python -m torcsrl.evaluate --policy {run_dir} --track set:heldout --surface asphalt dirt --laps 10", file=sys.stderr)
+          f"[torcsrl] evaluate: python -m torcsrl.evaluate --policy {run_dir} --track set:train --surface asphalt dirt --laps 10   # compare runs here\n"
+          f"[torcsrl] held-out, once a driver is chosen (never select on it): python -m torcsrl.evaluate --policy {run_dir} "
+          "--track set:heldout --surface asphalt dirt --laps 10", file=sys.stderr)
     return {"frames": frames, "updates": updates, "episodes": 0, "wall_s": wall, "run_dir": str(run_dir),
             "checkpoint": str(ck) if ck else None, **result}
 

@@ -850,9 +850,9 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
           f"[torcsrl] last checkpoint: {result['checkpoint']}\n"
           f"[torcsrl] resume: {resume_command(run_dir, 'total_frames=<more>')}", file=sys.stderr)
     if cfg.env.name == "race" and result["checkpoint"]:
-        print(f"[torcsrl] evaluate: python -m torcsrl.evaluate --policy {run_dir} --track {_track_arg(cfg.env.track)} --laps 10\n"
-              f"[torcsrl]           python -m torcsrl.evaluate --policy {run_dir} --track set:heldout --surface asphalt dirt --laps 10",
-              file=sys.stderr)
+        print(f"[torcsrl] evaluate: python -m torcsrl.evaluate --policy {run_dir} --track {_track_arg(cfg.env.track)} --laps 10   # compare runs here\n"
+              f"[torcsrl] held-out, once a driver is chosen (never select on it): python -m torcsrl.evaluate --policy {run_dir} "
+              "--track set:heldout --surface asphalt dirt --laps 10", file=sys.stderr)
     return result
 
 
