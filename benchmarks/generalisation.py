@@ -16,7 +16,8 @@ on each track is driven once (2 laps) at the same control rate as the driver.
     python benchmarks/generalisation.py --policy RUN_DIR --curve       # held-out completion against training frames -> PNG
 
 ``--screen`` drives the training tracks instead (``set:train`` and ``gen-10001 … gen-10008`` from the training
-seed range; ``--generated N`` for ``10001 … 10000+N``, ``--generator proc --no-bundled`` for circuits only): the selection screen a shipped driver is chosen on (``--laps 1``). ``--starts K`` drives every trial
+seed range; ``--generated N`` for ``10001 … 10000+N``, ``--generator proc --no-bundled`` for circuits only): the
+selection screen a shipped driver is chosen on (``--laps 1``). ``--starts K`` drives every trial
 from K starts — the grid, then K-1 seeded random points of the lap (the same for every driver) — so one unlucky
 braking point weighs 1/K of a track instead of the whole track (the counts are then trials, K per track). ``--curve`` drives every checkpoint of each run folder (``--curve-laps`` laps, default 1) on the same tracks
 and plots completion against frames (``--out``/curve.png). ``--train SEEDS`` first trains the recipe
@@ -174,6 +175,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="reuse the expert's reference laps of an earlier run's generalisation.json (same control rate); "
                          "the (track, surface) pairs it lacks are driven")
     args = ap.parse_args(argv)
+    if args.generated is not None and args.generated < 0:
+        ap.error(f"--generated {args.generated}: expected a whole number >= 0 (generated tracks to drive)")
     if args.starts < 1:
         ap.error(f"--starts {args.starts}: expected a whole number >= 1 (1 = from the grid only)")
 

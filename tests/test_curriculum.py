@@ -306,13 +306,12 @@ def test_bc_refuses_a_curriculum_and_dagger_rounds_follow_its_stages(tmp_path, m
     # the demonstrations alone; then each DAgger round among 2 cars, and its rehearsal alone (curriculum.rehearse)
     assert seen == [0, 2, 0, 2, 0]
     ck = load_checkpoint(out["checkpoint"])
-    assert ck["counters"]["frames"] == 2 * (150 + 160)
+    assert ck["counters"]["frames"] == 2 * (150 + 160) and ck["curriculum"]["stage"] == 1
     rehearsed = [v for _, v in read_csv_metric(tmp_path, "train/rehearsal_episodes")]
     assert len(rehearsed) == 2 and min(rehearsed) >= 1  # 160 frames of 150-step episodes: at least one ends per round
     summary = json.loads((tmp_path / "curriculum.json").read_text())
     assert summary["stage"] == 1 and [h["to"] for h in summary["promotions"]] == ["experts"]
-    ck = load_checkpoint(out["checkpoint"])
-    assert ck["curriculum"]["stage"] == 1
+    assert summary["rehearse"] == {"stage": 0, "name": "solo", "frames": 160}
     # logged against the loop's x axis (updates: one fit of algo.bc_steps per round), like every imitation metric
     assert [s for s, _ in read_csv_metric(tmp_path, "curriculum/promotion")] == [20]
     assert [v for _, v in read_csv_metric(tmp_path, "train/stage")][-1] == 1.0

@@ -13,8 +13,9 @@ With a curriculum (``curriculum=...``, :mod:`torcsrl.curriculum`; ``algo=dagger`
 stages: the demonstrations are written in the first stage's env, every round drives the current stage's env and is
 validated in its validation envs, and the stage's criterion reads each round's validation (one validation per round);
 a promotion rebuilds the validation envs. With ``curriculum.rehearse: {stage, frames}`` every round after that stage
-also drives ``frames`` in the rehearsed stage's env into the round's rows (``train/rehearsal_episodes``). ``train/stage`` is logged, ``<run_dir>/curriculum.json`` holds the
-promotions, and every checkpoint the curriculum's state.
+also drives ``frames`` in the rehearsed stage's env into the round's rows (``train/rehearsal_episodes``).
+``train/stage`` is logged, ``<run_dir>/curriculum.json`` holds the promotions, and every checkpoint the curriculum's
+state.
 
 Resuming (``checkpoint.resume=latest`` or a path) continues after the checkpoint's round: the actor, its optimiser,
 the global generators, the curriculum's stage and the validation envs' state come back, the demonstrations are read
@@ -141,33 +142,31 @@ def train(cfg: DictConfig) -> dict[str, Any]:
             truncate_csv_after(run_dir, updates)
             set_rng_state(ck["rng"])
             print(f"[torcsrl] resumed from {ck['path']} after DAgger round {first - 1} ({updates} updates)", file=sys.stderr)
+
+        def drive(stage_cfg: DictConfig, seed: int, n: int, rows, beta: float) -> dict[str, float]:
+            """``n`` frames of ``stage_cfg``'s env into ``rows``: the learner drives (the teacher's noisy action with
+            probability ``beta``), the teacher labels every state."""
+            denv = make_demo_env(stage_cfg, seed)
+            try:
+                actor.eval()
+                return label_rollouts(denv, n, rows, sigma_max=float(cfg.demos.sigma_max), learner=learner, beta=beta, seed=seed,
+                                      obs_keys=obs_keys, teacher=str(cfg.demos.teacher))
+            finally:
+                actor.train()
+                denv.close()
+
         print(f"[torcsrl] imitation ({algo}) on {len(demos)} demonstration frames, {rounds} DAgger rounds; outputs in {run_dir}", file=sys.stderr)
         for rnd in range(first, rounds + 1):
             if rnd > 0:  # DAgger: the learner drives (the expert's noisy action with probability beta), the expert labels
                 beta = float(cfg.demos.dagger_beta) * 0.5 ** (rnd - 1)
                 agg = new_rows()
-                denv = make_demo_env(curriculum.config(cfg), int(cfg.seed) + 31 * rnd)
-                try:
-                    actor.eval()
-                    stats = label_rollouts(denv, int(cfg.demos.dagger_frames), agg, sigma_max=float(cfg.demos.sigma_max), learner=learner,
-                                           beta=beta, seed=int(cfg.seed) + 31 * rnd, obs_keys=obs_keys, teacher=str(cfg.demos.teacher))
-                    actor.train()
-                finally:
-                    denv.close()
+                stats = drive(curriculum.config(cfg), int(cfg.seed) + 31 * rnd, int(cfg.demos.dagger_frames), agg, beta)
                 rehearsed = curriculum.rehearsal()
-                if rehearsed is not None:  # the same learner and teacher, in the rehearsed stage's env (own seed)
-                    renv = make_demo_env(curriculum.config(cfg, stage=rehearsed.stage), int(cfg.seed) + 31 * rnd + 17)
-                    try:
-                        actor.eval()
-                        rstats = label_rollouts(renv, rehearsed.frames, agg, sigma_max=float(cfg.demos.sigma_max), learner=learner,
-                                                beta=beta, seed=int(cfg.seed) + 31 * rnd + 17, obs_keys=obs_keys,
-                                                teacher=str(cfg.demos.teacher))
-                        actor.train()
-                    finally:
-                        renv.close()
+                if rehearsed is not None:  # the rehearsed stage's env, its own seed
+                    rstats = drive(curriculum.config(cfg, stage=rehearsed.stage), int(cfg.seed) + 31 * rnd + 17, rehearsed.frames, agg, beta)
                     frames += rehearsed.frames
-                    log_metrics(loggers, {"train/rehearsal_episodes": rstats["episodes"], "train/rehearsal_terminated": rstats["terminated"]},
-                                updates)
+                    log_metrics(loggers, {"train/rehearsal_episodes": rstats["episodes"],
+                                          "train/rehearsal_terminated": rstats["terminated"]}, updates)
                 buffers.append(agg)
                 if cfg.checkpoint.buffer:  # kept for a resume (the demonstrations are in their own folder already)
                     save_dir_atomically(rows_dir / f"round_{rnd:03d}", lambda d: agg.dumps(d))  # noqa: B023

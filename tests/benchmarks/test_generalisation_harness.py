@@ -40,6 +40,10 @@ def test_no_bundled_without_generated_tracks_fails_in_one_line(capsys):
         b.main(["--policy", "heuristic", "--no-bundled", "--generated", "0"])
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert "no tracks to drive" in err and "--generated" in err
+    with pytest.raises(SystemExit):
+        b.main(["--policy", "heuristic", "--screen", "--generated", "-2"])
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "--generated -2: expected a whole number >= 0" in err
 
 
 def test_several_starts_are_the_grid_then_seeded_random_points(capsys):
