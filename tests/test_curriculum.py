@@ -244,7 +244,13 @@ def test_training_goes_through_stages_and_resumes_the_stage_exactly(tmp_path, mo
     ({"a": {"promote": {"metric": "clean", "at_least": 1}}, "b": {}, "rehearse": {"stage": "a", "frames": 0}},
      r"curriculum.rehearse.frames: expected a positive integer"),
     ({"a": {"promote": {"metric": "clean", "at_least": 1}}, "b": {}, "rehearse": {"stage": "a", "frame": 10}},
-     r"curriculum.rehearse.frame: unknown key; allowed: stage, frames"),
+     r"curriculum.rehearse.frame: unknown key; allowed: stage, frames, overrides"),
+    ({"a": {"promote": {"metric": "clean", "at_least": 1}}, "b": {}, "rehearse": {"stage": "a", "frames": 10, "overrides": {"algo.gamma": 0.9}}},
+     r"curriculum.rehearse.overrides: unknown key 'algo.gamma'; allowed: env.<"),
+    ({"a": {"promote": {"metric": "clean", "at_least": 1}}, "b": {}, "rehearse": {"stage": "a", "frames": 10, "overrides": {"env.sensors": ["state"]}}},
+     r"env.sensors cannot change between stages"),
+    ({"a": {"promote": {"metric": "clean", "at_least": 1}}, "b": {}, "rehearse": {"stage": "a", "frames": 10, "overrides": [1]}},
+     r"curriculum.rehearse.overrides: expected a mapping"),
     ({"a": {"promote": {"metric": "clean", "at_least": 1}}, "b": {"overrides": {"degradation.severity": 4}}},
      r"curriculum.stages.b: overrides degradation.severity but degradation.stack is empty"),
 ])
@@ -271,6 +277,14 @@ def test_bad_race_stage_and_algos_without_stages():
         validate(compose_cfg("algo=ppo", "curriculum=robust"))
     with pytest.raises(ConfigError, match=r"curriculum.rehearse: algo=td3 cannot rehearse an earlier stage .*; allowed: algo=dagger"):
         validate(compose_cfg("algo=td3", "curriculum=guppy", "curriculum.rehearse={stage:solo,frames:100}"))
+    # the rehearsal's own overrides are checked like a stage's config, and named as the rehearsal's
+    with pytest.raises(ConfigError, match=r"^invalid config: curriculum.rehearse: env.surface: unknown surface 'lava'; allowed: asphalt"):
+        validate(compose_cfg("experiment=racer", "curriculum.rehearse={stage:solo,frames:100,overrides:{env.surface:lava}}"))
+    cfg = compose_cfg("experiment=racer", "curriculum.rehearse={stage:solo,frames:100,overrides:{env.procedural.generator:proc}}")
+    validate(cfg)
+    cur = Curriculum.from_config(cfg)
+    assert cur.rehearsal_config(cfg).env.procedural.generator == "proc"  # on top of the solo stage's config
+    assert cur.config(cfg, 0).env.procedural.generator == cur.config(cfg, 2).env.procedural.generator == "gen"  # the stages keep theirs
 
 
 def test_bc_refuses_a_curriculum_and_dagger_rounds_follow_its_stages(tmp_path, monkeypatch):
@@ -287,9 +301,11 @@ def test_bc_refuses_a_curriculum_and_dagger_rounds_follow_its_stages(tmp_path, m
         cfg.curriculum.stages.experts.overrides["env.traffic"] = {"opponents": 2, "driver": {"kind": "expert", "pace": 0.5},
                                                                    "start": "grid", "order": "fixed", "learner_slot": "last"}
         cfg.curriculum.stages.experts.overrides["eval.env.traffic"] = None
-        cfg.curriculum.rehearse = {"stage": "solo", "frames": 160}  # every round in experts also drives 160 frames alone
+        # every round in experts also drives 160 frames alone, on another track (the rehearsal's own override)
+        cfg.curriculum.rehearse = {"stage": "solo", "frames": 160, "overrides": {"env.track": "hairpins"}}
     validate(cfg)
     seen: list = []
+    tracks: list = []
     import torcsrl.demos as demos_mod
 
     real_demo_env = demos_mod.make_demo_env
@@ -297,6 +313,7 @@ def test_bc_refuses_a_curriculum_and_dagger_rounds_follow_its_stages(tmp_path, m
     def spy_demo_env(c, seed):  # the real env; only notes how many cars each demonstration / DAgger env races
         env = real_demo_env(c, seed)
         seen.append(int(c.env.traffic.opponents) if c.env.traffic else 0)
+        tracks.append(str(c.env.track))
         assert "opponents_clean" in env.observation_spec.keys()  # the racer teacher reads the clean sectors
         return env
 
@@ -305,13 +322,14 @@ def test_bc_refuses_a_curriculum_and_dagger_rounds_follow_its_stages(tmp_path, m
     assert out["train/stage_name"] == "experts" and out["train/stage"] == 1
     # the demonstrations alone; then each DAgger round among 2 cars, and its rehearsal alone (curriculum.rehearse)
     assert seen == [0, 2, 0, 2, 0]
+    assert tracks == ["oval", "oval", "hairpins", "oval", "hairpins"]  # the rehearsal's overrides apply to it alone
     ck = load_checkpoint(out["checkpoint"])
     assert ck["counters"]["frames"] == 2 * (150 + 160) and ck["curriculum"]["stage"] == 1
     rehearsed = [v for _, v in read_csv_metric(tmp_path, "train/rehearsal_episodes")]
     assert len(rehearsed) == 2 and min(rehearsed) >= 1  # 160 frames of 150-step episodes: at least one ends per round
     summary = json.loads((tmp_path / "curriculum.json").read_text())
     assert summary["stage"] == 1 and [h["to"] for h in summary["promotions"]] == ["experts"]
-    assert summary["rehearse"] == {"stage": 0, "name": "solo", "frames": 160}
+    assert summary["rehearse"] == {"stage": 0, "name": "solo", "frames": 160, "overrides": {"env.track": "hairpins"}}
     # logged against the loop's x axis (updates: one fit of algo.bc_steps per round), like every imitation metric
     assert [s for s, _ in read_csv_metric(tmp_path, "curriculum/promotion")] == [20]
     assert [v for _, v in read_csv_metric(tmp_path, "train/stage")][-1] == 1.0

@@ -30,10 +30,13 @@ metrics (:data:`METRICS`), keeps it for the stage, and promotes when ``over`` (k
 
 and the stage has trained ``min_frames`` frames at least. Validations of an earlier stage never count for a later one.
 
-**Rehearsal** (``rehearse: {stage: <name>, frames: N}``, ``algo=dagger`` only): once training has left the named
-stage, every DAgger round also drives N frames in that stage's env (its config, :meth:`Curriculum.config` at that
-stage), labelled by the teacher like the round's own — so a student that moves on to traffic keeps being corrected
-where it drives alone (rehearsal against forgetting an earlier task; the round's own frames are unchanged).
+**Rehearsal** (``rehearse: {stage: <name>, frames: N[, overrides: {...}]}``, ``algo=dagger`` only): once training has
+left the named stage, every DAgger round also drives N frames in that stage's env (its config, :meth:`Curriculum.config`
+at that stage, then the rehearsal's own ``overrides``, the keys a stage may set: :meth:`Curriculum.rehearsal_config`),
+labelled by the teacher like the round's own — so a student that moves on to traffic keeps being corrected where it
+drives alone (rehearsal against forgetting an earlier task; the round's own frames are unchanged), and with overrides
+where it drives alone on roads the stage's env did not hold (``env.procedural.generator: proc``: circuits with
+hairpins).
 
 **The loop's interface** (:mod:`torcsrl.train`): ``Curriculum.from_config(cfg)``; ``config(cfg)`` the stage's config
 (with no stages: ``cfg`` itself); ``observe(eval_metrics, frames, episodes)`` after each validation, returning the
@@ -74,7 +77,7 @@ FIXED_ENV_KEYS = ("name", "sensors", "camera", "num_cars", "normalize", "action_
 _CRITERION_KEYS = ("metric", "at_least", "at_most", "over", "rule", "min_frames")
 _STAGE_KEYS = ("overrides", "promote")
 _CURRICULUM_KEYS = ("stages", "rehearse")
-_REHEARSE_KEYS = ("stage", "frames")
+_REHEARSE_KEYS = ("stage", "frames", "overrides")
 
 
 class CurriculumError(ValueError):
@@ -167,11 +170,13 @@ class Stage:
 @dataclass(frozen=True)
 class Rehearsal:
     """``curriculum.rehearse``: after leaving stage ``stage`` (its index), every DAgger round also drives ``frames``
-    frames [env steps] in that stage's env."""
+    frames [env steps] in that stage's env, with ``overrides`` (dotted key -> plain value, the keys a stage may set)
+    applied on top of it."""
 
     stage: int
     name: str
     frames: int
+    overrides: dict[str, Any] = field(default_factory=dict)
 
 
 class Curriculum:
@@ -226,7 +231,7 @@ class Curriculum:
             stages.append(Stage(name, {str(k): _plain(v) for k, v in ov.items()}, crit))
         ev = cfg.get("eval") if cfg is not None else None
         lap_limit = ev.get("lap_limit") if ev is not None else None
-        return cls(stages, int(lap_limit or 1), _rehearsal(raw.get("rehearse"), [s.name for s in stages]))
+        return cls(stages, int(lap_limit or 1), _rehearsal(raw.get("rehearse"), [s.name for s in stages], env_name))
 
     # ---- the stage's config ----------------------------------------------------------------------------------
     @property
@@ -250,14 +255,17 @@ class Curriculum:
         out = copy.deepcopy(cfg)
         with open_dict(out):
             for s in self.stages[:k + 1]:
-                for key, value in s.overrides.items():
-                    parent, _, leaf = key.rpartition(".")
-                    node = OmegaConf.select(out, parent, default=None)
-                    if not isinstance(node, DictConfig):
-                        raise CurriculumError(f"curriculum.stages.{s.name}.overrides: {key} sets {leaf!r} inside {parent}, which is "
-                                              f"{'null' if node is None else repr(node)} at this stage; allowed: the whole "
-                                              f"mapping ({parent}: {{...}}) in this or an earlier stage")
-                    OmegaConf.update(out, key, copy.deepcopy(value), merge=False, force_add=True)
+                _apply(out, s.overrides, f"curriculum.stages.{s.name}.overrides")
+        return out
+
+    def rehearsal_config(self, cfg: DictConfig) -> DictConfig:
+        """The config a rehearsal drives: the rehearsed stage's (:meth:`config`) with ``rehearse.overrides`` on top."""
+        r = self.rehearse
+        if r is None:
+            raise CurriculumError("curriculum.rehearse is null: no rehearsal config; allowed: {stage: <name>, frames: N}")
+        out = self.config(cfg, stage=r.stage)
+        with open_dict(out):
+            _apply(out, r.overrides, "curriculum.rehearse.overrides")
         return out
 
     def rehearsal(self) -> Rehearsal | None:
@@ -385,11 +393,33 @@ def problems(cfg: DictConfig | Mapping, base_problems: list[str]) -> list[str]:
         with open_dict(staged):
             staged.curriculum = {"stages": {}}
         out += [f"curriculum.stages.{stage.name}: {line}" for line in config_problems(staged) if line not in base_problems]
+    if cur.rehearse is not None and cur.rehearse.overrides and not out:  # the rehearsal's env, checked like a stage's
+        try:
+            staged = cur.rehearsal_config(cfg)
+        except CurriculumError as err:
+            return [str(err)]
+        with open_dict(staged):
+            staged.curriculum = {"stages": {}}
+        out += [f"curriculum.rehearse: {line}" for line in config_problems(staged) if line not in base_problems]
     return out
 
 
-def _rehearsal(value: Any, names: list[str]) -> Rehearsal | None:
-    """``curriculum.rehearse``: null, or {stage: <a stage before the last>, frames: <integer >= 1>}."""
+def _apply(out: DictConfig, overrides: Mapping[str, Any], where: str) -> None:
+    """Set the dotted ``overrides`` in ``out`` (opened for new keys). :class:`CurriculumError` (one line) when a deeper
+    key's parent is not a mapping there."""
+    for key, value in overrides.items():
+        parent, _, leaf = key.rpartition(".")
+        node = OmegaConf.select(out, parent, default=None)
+        if not isinstance(node, DictConfig):
+            raise CurriculumError(f"{where}: {key} sets {leaf!r} inside {parent}, which is "
+                                  f"{'null' if node is None else repr(node)} at this stage; allowed: the whole "
+                                  f"mapping ({parent}: {{...}}) in this or an earlier stage")
+        OmegaConf.update(out, key, copy.deepcopy(value), merge=False, force_add=True)
+
+
+def _rehearsal(value: Any, names: list[str], env_name: str = "race") -> Rehearsal | None:
+    """``curriculum.rehearse``: null, or {stage: <a stage before the last>, frames: <integer >= 1>, overrides: {<dotted
+    key>: value} (optional; the keys a stage may set)}."""
     if value is None:
         return None
     where = "curriculum.rehearse"
@@ -404,7 +434,12 @@ def _rehearsal(value: Any, names: list[str]) -> Rehearsal | None:
         raise CurriculumError(f"{where}.stage: {stage!r} is not a stage before the last; allowed: {', '.join(earlier) or 'none (one stage)'}")
     if not (isinstance(frames, int) and not isinstance(frames, bool) and frames >= 1):
         raise CurriculumError(f"{where}.frames: expected a positive integer (env steps per DAgger round), got {frames!r}")
-    return Rehearsal(names.index(stage), str(stage), int(frames))
+    ov = value.get("overrides") or {}
+    if not isinstance(ov, Mapping):
+        raise CurriculumError(f"{where}.overrides: expected a mapping {{<dotted key>: value}}, got {ov!r}")
+    for key in ov:
+        _check_key(str(key), f"{where}.overrides", env_name)
+    return Rehearsal(names.index(stage), str(stage), int(frames), {str(k): _plain(v) for k, v in ov.items()})
 
 
 def _plain(v: Any) -> Any:

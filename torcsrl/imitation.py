@@ -163,7 +163,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
                 stats = drive(curriculum.config(cfg), int(cfg.seed) + 31 * rnd, int(cfg.demos.dagger_frames), agg, beta)
                 rehearsed = curriculum.rehearsal()
                 if rehearsed is not None:  # the rehearsed stage's env, its own seed
-                    rstats = drive(curriculum.config(cfg, stage=rehearsed.stage), int(cfg.seed) + 31 * rnd + 17, rehearsed.frames, agg, beta)
+                    rstats = drive(curriculum.rehearsal_config(cfg), int(cfg.seed) + 31 * rnd + 17, rehearsed.frames, agg, beta)
                     frames += rehearsed.frames
                     log_metrics(loggers, {"train/rehearsal_episodes": rstats["episodes"],
                                           "train/rehearsal_terminated": rstats["terminated"]}, updates)
