@@ -369,3 +369,63 @@ def test_a_killed_dagger_run_resumes_exactly_after_its_last_round(tmp_path, demo
     save_checkpoint(last, ck)
     with pytest.raises(CheckpointError, match=r"holds no optim, rng \(an imitation checkpoint written before .*allowed: "):
         run(tmp_path / "old", 2, "checkpoint.resume=latest")
+
+
+def test_slow_rows_weigh_more_in_the_imitation_fit():
+    """``algo.bc_slow_weight``: a row whose newest state reading drives slower than ``bc_slow_kmh`` counts w times.
+    Half the rows crawl at 2 km/h (label pedal +1, creep off), half drive at 100 km/h (label -1): the plain fit is 0,
+    with w = 3 the weighted mean (3 - 1) / 4 = +0.5. The speed is the newest reading's (a state history's last slots),
+    not an older one's; with the near-car weight a row weighs the product. The km/h become the stored units; a weight
+    without the race env's state, with an RL algo or out of range fails in one line."""
+    from types import SimpleNamespace
+
+    from tensordict import TensorDict
+
+    from torcsrl.agents._build import bc_step, slow_weights
+    from torcsrl.config import validate
+    from torcsrl.envs.sensors import STATE_SLOTS
+    from torcsrl.imitation import _slow
+
+    class Const(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.a = torch.nn.Parameter(torch.zeros(2))
+
+        def forward(self, x):
+            return self.a.expand(x.shape[0], 2)
+
+    n, v = len(STATE_SLOTS), STATE_SLOTS.index("speedX_kmh")
+    state = torch.zeros(64, 2 * n)  # two readings, newest last
+    state[:32, n + v] = 2.0 / 300.0  # crawling now
+    state[32:, n + v] = 100.0 / 300.0  # driving now ...
+    state[32:, v] = 1.0 / 300.0  # ... after a standstill one reading before (not counted)
+    labels = torch.tensor([[0.0, 1.0]]).repeat(64, 1)
+    labels[32:, 1] = -1.0
+    opp = torch.ones(64, 36)
+    opp[::2, 3] = 5.0 / 200.0  # every other row has a car 5 m away
+    batch = TensorDict({"state": state, "opponents": opp, "expert_action": labels}, [64])
+    slow = (3.0, 5.0 / 300.0, v, n)
+    assert slow_weights(state, *slow).tolist() == [3.0] * 32 + [1.0] * 32
+    fits = {}
+    for key, near, sl in (("plain", None, None), ("slow", None, slow), ("both", (2.0, 15.0 / 200.0), slow)):
+        actor = Const()
+        net = SimpleNamespace(actor_network=actor, obs=lambda b: (b["state"],))
+        optim = {"actor": torch.optim.SGD(actor.parameters(), lr=0.2)}
+        for _ in range(300):
+            _, extra = bc_step(net, optim, batch, "float32", None, None, near, sl)
+        fits[key] = (float(actor.a.detach()[1]), float(extra.get("loss/slow_rows", -1)))
+    assert fits["plain"] == pytest.approx((0.0, -1.0), abs=1e-4)
+    assert fits["slow"] == pytest.approx((0.5, 0.5), abs=1e-4)
+    assert fits["both"] == pytest.approx((0.5, 0.5), abs=1e-4)  # near-car rows double in both halves: (16 (6 + 3) - 16 (2 + 1)) / 192
+    cfg = cfg_for("algo=dagger", "algo.bc_slow_weight=4", "algo.bc_slow_kmh=6")
+    validate(cfg)
+    assert _slow(cfg, ["rangefinder", "state"]) == pytest.approx((4.0, 0.02, v, n))
+    assert _slow(cfg_for("algo=dagger"), ["rangefinder", "state"]) is None
+    with pytest.raises(ValueError, match=r"algo.bc_slow_weight=4.0 weighs the rows by the state's speedX_kmh, which the actor does not read"):
+        _slow(cfg, ["rangefinder"])
+    with pytest.raises(ValueError, match=r"algo.bc_slow_weight=4 weighs the rows by the race env's state .*allowed: 1.0, or env=race with state"):
+        validate(cfg_for("algo=dagger", "env.sensors=[rangefinder]", "algo.bc_slow_weight=4"))
+    with pytest.raises(ValueError, match="algo.bc_slow_weight=4: the slow-row weight shapes the imitation fit of algo=bc / dagger only"):
+        validate(cfg_for("algo=td3", "algo.bc_slow_weight=4"))
+    with pytest.raises(ValueError, match=r"algo.bc_slow_kmh: 0.0 is out of range; allowed: \(0, 300\]"):
+        validate(cfg_for("algo=dagger", "algo.bc_slow_weight=4", "algo.bc_slow_kmh=0.0"))

@@ -83,6 +83,8 @@ RANGES: dict[str, tuple[float | None, float | None, str]] = {
     "algo.grip_estimate": (0.0, None, "closed"),
     "algo.bc_near_car_weight": (0.0, None, "open"),
     "algo.bc_near_car_m": (0.0, 200.0, "open"),
+    "algo.bc_slow_weight": (0.0, None, "open"),
+    "algo.bc_slow_kmh": (0.0, 300.0, "open"),
     "algo.smooth.temporal": (0.0, None, "closed"),
     "algo.smooth.spatial": (0.0, None, "closed"),
     "algo.smooth.spatial_sigma": (0.0, None, "closed"),
@@ -516,6 +518,17 @@ def _check_algo_fit(c: Mapping, out: list[str]) -> None:
         elif "opponents" not in keys:
             out.append(f"algo.bc_near_car_weight={near} weighs the rows by the opponents sensor, which the actor does not read "
                        f"(its keys {keys}); allowed: 1.0, or env.sensors with opponents")
+    slow = algo.get("bc_slow_weight", 1.0)
+    if _is_num(slow) and slow != 1.0:
+        env = c.get("env") if isinstance(c.get("env"), Mapping) else {}
+        keys = c.get("obs_keys") or env.get("sensors") or []
+        keys = [keys] if isinstance(keys, str) else list(keys)
+        if name not in ("bc", "dagger"):
+            out.append(f"algo.bc_slow_weight={slow}: the slow-row weight shapes the imitation fit of algo=bc / dagger only "
+                       f"(algo={name}); allowed: 1.0, or algo=bc / dagger")
+        elif env.get("name", "race") != "race" or "state" not in keys:
+            out.append(f"algo.bc_slow_weight={slow} weighs the rows by the race env's state (speedX_kmh), which the actor does not "
+                       f"read (env={env.get('name', 'race')}, its keys {keys}); allowed: 1.0, or env=race with state in env.sensors")
     grip = algo.get("grip_estimate", 0.0)
     if _is_num(grip) and grip > 0 and name not in ("bc", "dagger"):
         out.append(f"algo.grip_estimate={grip}: the grip head learns from the demonstrations' privileged mu, which only algo=bc / "

@@ -107,7 +107,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
             head = torch.nn.Linear(actor.encoder.out_dim, len(PRIVILEGED_SLOTS)).to(device)
             optim["actor"].add_param_group({"params": list(head.parameters())})
             aux = (head, aux_w)
-        near_car = _near_car(cfg, obs_keys)
+        near_car, slow = _near_car(cfg, obs_keys), _slow(cfg, obs_keys)
         rounds = int(cfg.demos.dagger_rounds) if algo == "dagger" else 0
         steps_per_fit, batch_size, precision = int(cfg.algo.bc_steps), int(cfg.algo.batch_size), str(cfg.algo.precision)
         lr_schedule = str(cfg.algo.get("bc_lr_schedule", "constant"))
@@ -185,7 +185,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
                 print(f"[torcsrl] actor from {started}" + ("; DAgger rounds refit it (round 0 only validates it)" if fit == 0 else ""),
                       file=sys.stderr)
             for i in range(fit):
-                bc, smooth = bc_step(net, optim, mixed_sample(buffers, batch_size).to(device), precision, cfg.algo, aux, near_car)
+                bc, smooth = bc_step(net, optim, mixed_sample(buffers, batch_size).to(device), precision, cfg.algo, aux, near_car, slow)
                 if sched is not None:
                     with warnings.catch_warnings():  # FusedAdam.fast_step bypasses the step counter torch's check reads
                         warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step\\(\\)` before")
@@ -252,6 +252,24 @@ def _near_car(cfg: DictConfig, obs_keys: list[str]) -> tuple[float, float] | Non
 
         reach_m /= float(obs_scale("opponents")[0])
     return weight, reach_m
+
+
+def _slow(cfg: DictConfig, obs_keys: list[str]) -> tuple[float, float, int, int] | None:
+    """``(weight, below, slot, reading)`` of :func:`torcsrl.agents._build.bc_step` from ``algo.bc_slow_weight`` and
+    ``algo.bc_slow_kmh`` (the speed in km/h, converted to the stored units of ``state``: divided by its scale when
+    ``env.normalize``), or None when the weight is 1. ValueError (one line) when the actor reads no ``state``."""
+    weight = float(cfg.algo.get("bc_slow_weight", 1.0))
+    if weight == 1.0:
+        return None
+    if "state" not in obs_keys:
+        raise ValueError(f"algo.bc_slow_weight={weight} weighs the rows by the state's speedX_kmh, which the actor does not read "
+                         f"(its keys {obs_keys}); allowed: 1.0, or env.sensors with state")
+    from torcsrl.envs.sensors import STATE_SCALE, STATE_SLOTS
+
+    below = float(cfg.algo.get("bc_slow_kmh", 5.0))
+    if cfg.env.name == "race" and cfg.env.get("normalize", True):
+        below /= float(STATE_SCALE["speedX_kmh"])
+    return weight, below, STATE_SLOTS.index("speedX_kmh"), len(STATE_SLOTS)
 
 
 def _resume_checkpoint(cfg: DictConfig, ckpt_dir: Path, meta: dict) -> dict:

@@ -292,7 +292,8 @@ def actor_regularisers(loss: LossModule, batch, action: torch.Tensor, q: torch.T
 
 def bc_step(loss: LossModule, optim: dict, batch, precision: str = "float32", reg: Any = None,
             aux: tuple[torch.nn.Module, float] | None = None,
-            near_car: tuple[float, float] | None = None) -> tuple[torch.Tensor, dict]:
+            near_car: tuple[float, float] | None = None,
+            slow: tuple[float, float, int, int] | None = None) -> tuple[torch.Tensor, dict]:
     """One behaviour-cloning step of the actor: ``|mu(s) - a*|^2`` on a demonstration batch, plus the CAPS
     terms of ``reg`` (the ``algo`` config; :func:`actor_regularisers`) when they are on.
 
@@ -313,8 +314,15 @@ def bc_step(loss: LossModule, optim: dict, batch, precision: str = "float32", re
     wrong pedal is a contact, count ``weight`` times as much (``algo.bc_near_car_weight``, :func:`near_car_weights`);
     ``loss/near_car_rows`` logs their share of the batch.
 
-    Returns (the regression loss, the smoothness metrics ``loss/smooth_*``, ``loss/aux``, ``loss/grip`` and
-    ``loss/near_car_rows``), detached.
+    ``slow=(weight, below, slot, reading)`` weighs each row's error by ``weight`` where the car's forward speed, slot
+    ``slot`` of the newest ``reading``-slot reading at the end of the row's ``state`` (a state history is its readings
+    concatenated, newest last), is below ``below`` (the key's stored units) — the rows at a standstill or crawling,
+    where the teacher creeps off (round a hairpin, from a grid before a bend) and a student that brakes there instead
+    never moves again (``algo.bc_slow_weight``, :func:`slow_weights`); ``loss/slow_rows`` logs their share. With
+    ``near_car`` too a row's weight is the product.
+
+    Returns (the regression loss, the smoothness metrics ``loss/smooth_*``, ``loss/aux``, ``loss/grip``,
+    ``loss/near_car_rows`` and ``loss/slow_rows``), detached.
     """
     grip_w = float(getattr(reg, "grip_estimate", 0.0) or 0.0) if reg is not None else 0.0
     with precision_context(precision, batch.device or "cpu"):
@@ -330,13 +338,15 @@ def bc_step(loss: LossModule, optim: dict, batch, precision: str = "float32", re
             per_row = err[..., 0].pow(2) + w * err[..., 1].pow(2) + err[..., 2:].pow(2).sum(-1)
         else:
             per_row = err.pow(2).sum(-1)
-        near = {}
+        near, rw = {}, None
         if near_car is not None:
             rw = near_car_weights(batch.get("opponents"), *near_car)
-            bc = (rw * per_row).sum() / rw.sum()
             near = {"loss/near_car_rows": (rw != 1.0).float().mean()}
-        else:
-            bc = per_row.mean()
+        if slow is not None:
+            sw = slow_weights(batch.get("state"), *slow)
+            near["loss/slow_rows"] = (sw != 1.0).float().mean()
+            rw = sw if rw is None else rw * sw
+        bc = per_row.mean() if rw is None else (rw * per_row).sum() / rw.sum()
         total, extra = (bc, {}) if reg is None else actor_regularisers(loss, batch, action, None, bc, reg)
         extra = {**extra, **near}
         if aux is not None:
@@ -364,6 +374,14 @@ def near_car_weights(opponents: torch.Tensor, weight: float, reach: float) -> to
     ``opponents``: [B, 36]; returns [B] in float32."""
     near = (opponents.float().amin(-1) < float(reach)).float()
     return 1.0 + (float(weight) - 1.0) * near
+
+
+def slow_weights(state: torch.Tensor, weight: float, below: float, slot: int, reading: int) -> torch.Tensor:
+    """Per-row weights of the imitation loss: ``weight`` where the forward speed — slot ``slot`` of the newest reading
+    (the last ``reading`` values of ``state`` [B, K * reading], a history of K readings, newest last) — is below
+    ``below`` (the key's units), else 1. Returns [B] in float32."""
+    speed = state.float()[..., state.shape[-1] - int(reading) + int(slot)]
+    return 1.0 + (float(weight) - 1.0) * (speed < float(below)).float()
 
 
 def update(loss: LossModule, optim: dict, updater: SoftUpdate, batch, n_update: int, policy_delay: int, grad_clip: float | None,
