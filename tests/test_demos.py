@@ -258,7 +258,7 @@ def test_pedal_expectile_leans_the_fit_towards_braking():
     batch = TensorDict({"state": torch.zeros(64, 1), "expert_action": labels}, [64])
     fits = {}
     for tau in (0.5, 0.2):
-        actor = Const()
+        actor = _ConstActor()
         net = SimpleNamespace(actor_network=actor, obs=lambda b: (b["state"],))
         optim = {"actor": torch.optim.SGD(actor.parameters(), lr=0.2)}
         for _ in range(300):
@@ -288,14 +288,6 @@ def test_near_car_weight_leans_the_fit_to_the_rows_in_traffic():
     from torcsrl.config import validate
     from torcsrl.imitation import _near_car
 
-    class Const(torch.nn.Module):
-        def __init__(self):
-            super().__init__()
-            self.a = torch.nn.Parameter(torch.zeros(2))
-
-        def forward(self, x):
-            return self.a.expand(x.shape[0], 2)
-
     opp = torch.ones(64, 36)
     opp[:32, 7] = 5.0 / 200.0  # one car 5 m away, sector 7; the rest free (200 m = 1.0 normalised)
     labels = torch.tensor([[0.0, -1.0]]).repeat(64, 1)
@@ -304,7 +296,7 @@ def test_near_car_weight_leans_the_fit_to_the_rows_in_traffic():
     assert near_car_weights(opp, 3.0, 15.0 / 200.0).tolist() == [3.0] * 32 + [1.0] * 32
     fits = {}
     for near in (None, (3.0, 15.0 / 200.0), (3.0, 4.0 / 200.0)):
-        actor = Const()
+        actor = _ConstActor()
         net = SimpleNamespace(actor_network=actor, obs=lambda b: (b["state"],))
         optim = {"actor": torch.optim.SGD(actor.parameters(), lr=0.2)}
         for _ in range(300):
@@ -386,14 +378,6 @@ def test_slow_rows_weigh_more_in_the_imitation_fit():
     from torcsrl.envs.sensors import STATE_SLOTS
     from torcsrl.imitation import _slow
 
-    class Const(torch.nn.Module):
-        def __init__(self):
-            super().__init__()
-            self.a = torch.nn.Parameter(torch.zeros(2))
-
-        def forward(self, x):
-            return self.a.expand(x.shape[0], 2)
-
     n, v = len(STATE_SLOTS), STATE_SLOTS.index("speedX_kmh")
     state = torch.zeros(64, 2 * n)  # two readings, newest last
     state[:32, n + v] = 2.0 / 300.0  # crawling now
@@ -408,7 +392,7 @@ def test_slow_rows_weigh_more_in_the_imitation_fit():
     assert slow_weights(state, *slow).tolist() == [3.0] * 32 + [1.0] * 32
     fits = {}
     for key, near, sl in (("plain", None, None), ("slow", None, slow), ("both", (2.0, 15.0 / 200.0), slow)):
-        actor = Const()
+        actor = _ConstActor()
         net = SimpleNamespace(actor_network=actor, obs=lambda b: (b["state"],))
         optim = {"actor": torch.optim.SGD(actor.parameters(), lr=0.2)}
         for _ in range(300):
@@ -429,3 +413,14 @@ def test_slow_rows_weigh_more_in_the_imitation_fit():
         validate(cfg_for("algo=td3", "algo.bc_slow_weight=4"))
     with pytest.raises(ValueError, match=r"algo.bc_slow_kmh: 0.0 is out of range; allowed: \(0, 300\]"):
         validate(cfg_for("algo=dagger", "algo.bc_slow_weight=4", "algo.bc_slow_kmh=0.0"))
+
+
+class _ConstActor(torch.nn.Module):
+    """An actor that writes one learnt action for every row: its fit is the (weighted) mean label."""
+
+    def __init__(self):
+        super().__init__()
+        self.a = torch.nn.Parameter(torch.zeros(2))
+
+    def forward(self, x):
+        return self.a.expand(x.shape[0], 2)

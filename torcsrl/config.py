@@ -507,28 +507,24 @@ def _check_algo_fit(c: Mapping, out: list[str]) -> None:
         elif env.get("action_mode") not in (None, "combined"):
             out.append(f"algo.bc_pedal_expectile={tau} weighs action 1 as a pedal (< 0 = brake), which env.action_mode="
                        f"{env.get('action_mode')} does not have; allowed: 0.5, or env.action_mode=combined")
-    near = algo.get("bc_near_car_weight", 1.0)
-    if _is_num(near) and near != 1.0:
-        env = c.get("env") if isinstance(c.get("env"), Mapping) else {}
-        keys = c.get("obs_keys") or env.get("sensors") or []
-        keys = [keys] if isinstance(keys, str) else list(keys)
+    env = c.get("env") if isinstance(c.get("env"), Mapping) else {}
+    keys = c.get("obs_keys") or env.get("sensors") or []
+    keys = [keys] if isinstance(keys, str) else list(keys)
+    env_name = env.get("name", "race")
+    row_weights = (  # (key, what, the rows are weighed by, can the actor's rows give it, allowed)
+        ("bc_near_car_weight", "the near-car weight", "the opponents sensor", "opponents" in keys, "env.sensors with opponents"),
+        ("bc_slow_weight", "the slow-row weight", "the race env's state (speedX_kmh)", env_name == "race" and "state" in keys,
+         "env=race with state in env.sensors"))
+    for key, what, by, ok, allowed in row_weights:
+        w = algo.get(key, 1.0)
+        if not (_is_num(w) and w != 1.0):
+            continue
         if name not in ("bc", "dagger"):
-            out.append(f"algo.bc_near_car_weight={near}: the near-car weight shapes the imitation fit of algo=bc / dagger only "
-                       f"(algo={name}); allowed: 1.0, or algo=bc / dagger")
-        elif "opponents" not in keys:
-            out.append(f"algo.bc_near_car_weight={near} weighs the rows by the opponents sensor, which the actor does not read "
-                       f"(its keys {keys}); allowed: 1.0, or env.sensors with opponents")
-    slow = algo.get("bc_slow_weight", 1.0)
-    if _is_num(slow) and slow != 1.0:
-        env = c.get("env") if isinstance(c.get("env"), Mapping) else {}
-        keys = c.get("obs_keys") or env.get("sensors") or []
-        keys = [keys] if isinstance(keys, str) else list(keys)
-        if name not in ("bc", "dagger"):
-            out.append(f"algo.bc_slow_weight={slow}: the slow-row weight shapes the imitation fit of algo=bc / dagger only "
-                       f"(algo={name}); allowed: 1.0, or algo=bc / dagger")
-        elif env.get("name", "race") != "race" or "state" not in keys:
-            out.append(f"algo.bc_slow_weight={slow} weighs the rows by the race env's state (speedX_kmh), which the actor does not "
-                       f"read (env={env.get('name', 'race')}, its keys {keys}); allowed: 1.0, or env=race with state in env.sensors")
+            out.append(f"algo.{key}={w}: {what} shapes the imitation fit of algo=bc / dagger only (algo={name}); allowed: 1.0, "
+                       "or algo=bc / dagger")
+        elif not ok:
+            out.append(f"algo.{key}={w} weighs the rows by {by}, which the actor does not read (env={env_name}, its keys {keys}); "
+                       f"allowed: 1.0, or {allowed}")
     grip = algo.get("grip_estimate", 0.0)
     if _is_num(grip) and grip > 0 and name not in ("bc", "dagger"):
         out.append(f"algo.grip_estimate={grip}: the grip head learns from the demonstrations' privileged mu, which only algo=bc / "

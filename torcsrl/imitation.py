@@ -236,40 +236,47 @@ def train(cfg: DictConfig) -> dict[str, Any]:
             "checkpoint": str(ck) if ck else None, **result}
 
 
+def _row_weight(cfg: DictConfig, key: str, obs_keys: list[str], sensor: str, by: str) -> float | None:
+    """``algo.<key>``, a per-row weight of the imitation loss read from observation ``sensor``: None when it is 1;
+    ValueError (one line) when the actor does not read ``sensor``."""
+    weight = float(cfg.algo.get(key, 1.0))
+    if weight == 1.0:
+        return None
+    if sensor not in obs_keys:
+        raise ValueError(f"algo.{key}={weight} weighs the rows by {by}, which the actor does not read (its keys {obs_keys}); "
+                         f"allowed: 1.0, or env.sensors with {sensor}")
+    return weight
+
+
+def _normalised(cfg: DictConfig) -> bool:
+    return cfg.env.name == "race" and bool(cfg.env.get("normalize", True))
+
+
 def _near_car(cfg: DictConfig, obs_keys: list[str]) -> tuple[float, float] | None:
     """``(weight, reach)`` of :func:`torcsrl.agents._build.bc_step` from ``algo.bc_near_car_weight`` and
     ``algo.bc_near_car_m`` (the reach in metres, converted to the stored units of ``opponents``: /200 m when
     ``env.normalize``), or None when the weight is 1. ValueError (one line) when the actor reads no opponents sensor."""
-    weight = float(cfg.algo.get("bc_near_car_weight", 1.0))
-    if weight == 1.0:
+    weight = _row_weight(cfg, "bc_near_car_weight", obs_keys, "opponents", "the opponents sensor")
+    if weight is None:
         return None
-    if "opponents" not in obs_keys:
-        raise ValueError(f"algo.bc_near_car_weight={weight} weighs the rows by the opponents sensor, which the actor does not read "
-                         f"(its keys {obs_keys}); allowed: 1.0, or env.sensors with opponents")
-    reach_m = float(cfg.algo.get("bc_near_car_m", 15.0))
-    if cfg.env.name == "race" and cfg.env.get("normalize", True):
-        from torcsrl.envs.sensors import obs_scale
+    from torcsrl.envs.sensors import obs_scale
 
-        reach_m /= float(obs_scale("opponents")[0])
-    return weight, reach_m
+    reach_m = float(cfg.algo.get("bc_near_car_m", 15.0))
+    return weight, reach_m / float(obs_scale("opponents")[0]) if _normalised(cfg) else reach_m
 
 
 def _slow(cfg: DictConfig, obs_keys: list[str]) -> tuple[float, float, int, int] | None:
     """``(weight, below, slot, reading)`` of :func:`torcsrl.agents._build.bc_step` from ``algo.bc_slow_weight`` and
     ``algo.bc_slow_kmh`` (the speed in km/h, converted to the stored units of ``state``: divided by its scale when
     ``env.normalize``), or None when the weight is 1. ValueError (one line) when the actor reads no ``state``."""
-    weight = float(cfg.algo.get("bc_slow_weight", 1.0))
-    if weight == 1.0:
+    weight = _row_weight(cfg, "bc_slow_weight", obs_keys, "state", "the state's speedX_kmh")
+    if weight is None:
         return None
-    if "state" not in obs_keys:
-        raise ValueError(f"algo.bc_slow_weight={weight} weighs the rows by the state's speedX_kmh, which the actor does not read "
-                         f"(its keys {obs_keys}); allowed: 1.0, or env.sensors with state")
     from torcsrl.envs.sensors import STATE_SCALE, STATE_SLOTS
 
     below = float(cfg.algo.get("bc_slow_kmh", 5.0))
-    if cfg.env.name == "race" and cfg.env.get("normalize", True):
-        below /= float(STATE_SCALE["speedX_kmh"])
-    return weight, below, STATE_SLOTS.index("speedX_kmh"), len(STATE_SLOTS)
+    return (weight, below / float(STATE_SCALE["speedX_kmh"]) if _normalised(cfg) else below, STATE_SLOTS.index("speedX_kmh"),
+            len(STATE_SLOTS))
 
 
 def _resume_checkpoint(cfg: DictConfig, ckpt_dir: Path, meta: dict) -> dict:
