@@ -188,6 +188,42 @@ def test_safe_racer_brakes_as_the_bold_one_on_asphalt_and_earlier_on_low_grip():
             make_teacher(bad)
 
 
+def test_racer_safe_takes_an_asphalt_braking_rate_and_a_rate_for_a_fight():
+    """``racer_safe:<gamma>:<decel>[:<fight decel>]``: the braking it plans with on asphalt [m/s^2 at mu 1] in place of
+    9 (a margin where the bold racer plans at the limit), and with a third value the rate while a car is within 60 m
+    (any sector): alone it drives as the second value says, in a fight as the third."""
+    import numpy as np
+    import torch
+    from tensordict import TensorDict
+
+    from torcsrl.demos import DemoError, known_teacher, make_teacher
+
+    r, st = _straight_road(speed_kmh=205.0)  # 57 m/s with 200 m free: 9 m/s^2 still accelerates, 8 must brake
+    assert load_policy("racer_safe:1.5").act(r, st, mu=1.0)[1] > 0.0 > load_policy("racer_safe:1.5:8").act(r, st, mu=1.0)[1]
+    m8, fight = load_policy("racer_safe:1.27:8"), load_policy("racer_safe:1.27:8:9")
+    assert (m8.k.decel_per_mu, m8.k.grip_exponent, m8.race.fight_decel_per_mu) == (8.0, 1.27, None)
+    assert fight.race.fight_decel_per_mu == 9.0 and load_policy("racer_safe:1.5").race.fight_decel_per_mu is None
+    # on dirt (mu 0.6) gamma 1.27 with 8 plans as gamma 1.5 with 9: 4.18 m/s^2
+    assert 8.0 * 0.6 ** 1.27 == pytest.approx(9.0 * 0.6 ** 1.5, abs=0.01)
+
+    def pedal(pol, opp):
+        td = TensorDict({"rangefinder": torch.tensor(r, dtype=torch.float32)[None], "state": torch.tensor(st, dtype=torch.float32)[None],
+                         "opponents": torch.tensor(opp, dtype=torch.float32)[None], ("info", "surfaceMu"): torch.ones(1, 1)}, [1])
+        return float(pol(td)["action"][0, 1])
+
+    alone, far, beside = _sectors(), _sectors(s17=100.0), _sectors(s8=40.0)  # nothing; 100 m ahead; 40 m off to the left
+    assert pedal(fight, alone) == pedal(m8, alone) < 0.0  # alone: the margin
+    assert pedal(fight, far) == pedal(m8, far)  # a car beyond 60 m is no fight
+    assert pedal(fight, beside) == pedal(load_policy("racer_safe:1.27"), beside) > 0.0  # a car 40 m away: the limit
+    assert known_teacher("racer_safe:1.27:8:9") and make_teacher("racer_safe:1.27:8:9").race.fight_decel_per_mu == 9.0
+    for bad, msg in (("racer_safe:1.5:0", r"in \(0, 12\]"), ("racer_safe:1.5:8:13", r"in \(0, 12\]"),
+                     ("racer_safe:1.5:8:9:9", "at most three"), ("racer_safe:1.5:fast", "must be a number")):
+        with pytest.raises(PolicyError, match=msg):
+            load_policy(bad)
+        with pytest.raises(DemoError, match=msg):
+            make_teacher(bad)
+
+
 def test_clean_racer_widens_its_following_corridor_near_bends_and_hold_lane_keeps_its_lane():
     import numpy as np
 

@@ -28,9 +28,10 @@ spec                          policy
 ``racer``                     :class:`SensorRacer`: ``sensor_fast`` that passes (or lifts for) the
                               cars its ``opponents`` sensor shows: the race student's teacher
 ``racer_bold``                the same with ``SensorRacer.BOLD`` (passes more, collides more)
-``racer_safe[:<gamma>]``      ``racer_bold`` braking at ``9 mu^gamma`` m/s^2 (gamma 2): as bold on asphalt,
-                              a margin on low grip
-``racer_clean[:<gamma>]``     ``racer_safe`` with a 1.5-lane following corridor near bends (fewer contacts)
+``racer_safe[:<gamma>[:<d>[:<f>]]]`` ``racer_bold`` braking at ``9 mu^gamma`` m/s^2 (gamma 2): as bold on
+                              asphalt, a margin on low grip; ``<d>`` in place of 9: a margin on asphalt too;
+                              ``<f>``: the rate while a car is within 60 m (pushes in a fight)
+``racer_clean[:<gamma>...]``  ``racer_safe`` with a 1.5-lane following corridor near bends (fewer contacts)
 ``heuristic``                 a sensor-only driver in the style of the TORCS SCR sample robot:
                               steers from ``angle`` / ``trackPos`` and the longest rangefinder
                               beam, picks its speed from the free distance ahead
@@ -109,7 +110,7 @@ REFERENCE_CAMERA_POLICY = Path(__file__).resolve().parent / "assets" / "referenc
 REFERENCE_RACER_POLICY = Path(__file__).resolve().parent / "assets" / "reference_racer.pt"
 #: Names of the built-in policies (anything else is a checkpoint path).
 BUILTIN_POLICIES = ("expert", "expert_centre", "heuristic", "sensor", "sensor_grip", "sensor_fast", "sensor_sight[:<metres>]",
-                    "sensor_fast_sight[:<metres>]", "racer", "racer_bold", "racer_safe[:<gamma>]", "racer_clean[:<gamma>]", "random", "reference", "reference-td3", "reference_camera", "reference_racer")
+                    "sensor_fast_sight[:<metres>]", "racer", "racer_bold", "racer_safe[:<gamma>[:<decel>[:<fight decel>]]]", "racer_clean[:<gamma>[:<decel>[:<fight decel>]]]", "random", "reference", "reference-td3", "reference_camera", "reference_racer")
 
 
 class PolicyError(ValueError):
@@ -789,12 +790,15 @@ class SensorDriver(Policy):
         self.obs_shapes = {"rangefinder": (len(self.ang),)}
         self._i = {n: _state_slot(n) for n in ("angle_rad", "trackPos", "speedX_kmh", "speedY_kmh", "wheelSpinVel_rl", "wheelSpinVel_rr")}
 
-    def act(self, r: np.ndarray, st: np.ndarray, mu: float | None = None, tp_target: float = 0.0) -> tuple[float, float]:
+    def act(self, r: np.ndarray, st: np.ndarray, mu: float | None = None, tp_target: float = 0.0,
+            decel_per_mu: float | None = None) -> tuple[float, float]:
         """(steer, throttle_brake) in [-1, 1] from one car's beams [m] and state (raw units); ``mu`` [-], the
-        friction under the car, sets the braking it plans with when the driver is grip-aware (``decel_per_mu``);
-        ``tp_target`` [trackPos units] is where across the road the centring term pulls (0: the axis)."""
+        friction under the car, sets the braking it plans with when the driver is grip-aware (``decel_per_mu``, or
+        the argument in its place [m/s^2 at mu 1]); ``tp_target`` [trackPos units] is where across the road the
+        centring term pulls (0: the axis)."""
         k, i = self.k, self._i
-        decel = k.decel if k.decel_per_mu is None or mu is None else k.decel_per_mu * float(mu) ** k.grip_exponent
+        per_mu = k.decel_per_mu if decel_per_mu is None else decel_per_mu
+        decel = k.decel if per_mu is None or mu is None else per_mu * float(mu) ** k.grip_exponent
         v = float(st[i["speedX_kmh"]]) / 3.6
         beta = math.atan2(float(st[i["speedY_kmh"]]) / 3.6, max(v, 5.0))  # slip angle [rad]
         angle, tp = float(st[i["angle_rad"]]) + k.k_beta * beta, float(st[i["trackPos"]])
@@ -872,6 +876,10 @@ class SensorRacer(SensorDriver):
       inside: the scripted opponents do not see a car beside them), and with ``yield_alongside`` a car alongside
       but a little ahead counts too (it lets it go first).
 
+    * **Fighting**: with ``fight_decel_per_mu`` [m/s^2 at mu 1] it plans its braking (and corner speed) at that rate
+      while a car is within ``fight_m`` [m] (any sector), at its own ``decel_per_mu`` otherwise — a margin when it
+      drives alone, the limit in a fight (``racer_safe:<gamma>:<decel>:<fight decel>``).
+
     Without an ``opponents`` key it drives as ``sensor_fast``.
     """
 
@@ -895,6 +903,7 @@ class SensorRacer(SensorDriver):
                  tp_max: float = 0.7, lane_m: float = 2.4, length_m: float = 4.5, lift_m: float = 10.0, lift_s: float = 0.8,
                  brake_m: float = 6.0, brake_s: float = 0.5, brake: float = 1.0, pass_radius_m: float = 120.0,
                  bend_m: float = 50.0, bend_lanes: float = 2.5, yield_alongside: bool = True, hold_lane: bool = False,
+                 fight_decel_per_mu: float | None = None, fight_m: float = 60.0,
                  opponents_key: str = "opponents", **kw: Any) -> None:
         from torcsrl.envs.traffic import OPPONENT_RANGE_M, OPPONENT_SECTORS
 
@@ -907,7 +916,9 @@ class SensorRacer(SensorDriver):
         self.race = SimpleNamespace(look_m=look_m, full_m=full_m, rear_m=rear_m, pass_gap_m=pass_gap_m, tp_max=tp_max,
                                     lane_m=lane_m, length_m=length_m, lift_m=lift_m, lift_s=lift_s, brake_m=brake_m, brake_s=brake_s,
                                     brake=brake, pass_radius_m=pass_radius_m, bend_m=bend_m, bend_lanes=bend_lanes,
-                                    yield_alongside=bool(yield_alongside), hold_lane=bool(hold_lane))
+                                    yield_alongside=bool(yield_alongside), hold_lane=bool(hold_lane),
+                                    fight_decel_per_mu=None if fight_decel_per_mu is None else float(fight_decel_per_mu),
+                                    fight_m=float(fight_m))
         self.fingerprint = _code_fingerprint(SensorDriver, SensorRacer, repr(sorted(vars(self.k).items())),
                                              repr(sorted(vars(self.race).items())))
         phi = np.radians(175.0 - 10.0 * np.arange(OPPONENT_SECTORS))
@@ -980,9 +991,11 @@ class SensorRacer(SensorDriver):
             raise ValueError("the racer (a grip-aware SensorDriver) reads ('info', 'surfaceMu'), which this tensordict lacks")
         mu = mu.reshape(-1).tolist()
         out = []
+        q = self.race
         for j in range(r.shape[0]):
             target, cap = self.traffic(r[j], st[j], opp[j])
-            steer, u = self.act(r[j], st[j], mu[j], tp_target=target)
+            fight = q.fight_decel_per_mu is not None and bool((opp[j] < q.fight_m).any())
+            steer, u = self.act(r[j], st[j], mu[j], tp_target=target, decel_per_mu=q.fight_decel_per_mu if fight else None)
             if u < 0.0:  # braking for a bend: a car ahead may turn in across its path
                 cap = self.traffic(r[j], st[j], opp[j], braking=True)[1]
             out.append((steer, min(u, cap)))
@@ -1042,20 +1055,31 @@ def _sight_teacher(name: str, **keys: str) -> SensorDriver | None:
 
 
 def racer_gains(name: str) -> dict[str, Any] | None:
-    """The :class:`SensorRacer` gains of ``racer_safe[:<gamma>]`` / ``racer_clean[:<gamma>]`` (``SensorRacer.BOLD`` /
-    ``CLEAN`` with ``grip_exponent``), None for other names; :class:`PolicyError` (one line) for a bad exponent."""
+    """The :class:`SensorRacer` gains of ``racer_safe[:<gamma>[:<decel>[:<fight decel>]]]`` (and ``racer_clean[...]``):
+    ``SensorRacer.BOLD`` / ``CLEAN`` with ``grip_exponent`` gamma, where given ``decel_per_mu`` [m/s^2 at mu 1; the
+    default is ``SensorDriver.FAST``'s 9] and ``fight_decel_per_mu`` (the rate with a car within 60 m); None for other
+    names; :class:`PolicyError` (one line) for a bad value."""
     for base, gains in (("racer_safe", SensorRacer.BOLD), ("racer_clean", SensorRacer.CLEAN)):
         if name == base or name.startswith(base + ":"):
-            gamma = SensorRacer.SAFE_GRIP_EXPONENT
-            if ":" in name:
-                try:
-                    gamma = float(name.split(":", 1)[1])
-                except ValueError:
-                    raise PolicyError(f"{name!r}: the grip exponent after '{base}:' must be a number >= 1, e.g. {base}:2") from None
+            form = f"{base}[:<gamma>[:<decel>[:<fight decel>]]] (decel in m/s^2 at mu 1), e.g. {base}:2 or {base}:1.27:8:9"
+            parts = name.split(":")[1:]
+            if len(parts) > 3:
+                raise PolicyError(f"{name!r}: at most three values after '{base}': {form}")
+            try:
+                vals = [float(v) for v in parts]
+            except ValueError:
+                raise PolicyError(f"{name!r}: the grip exponent must be a number >= 1 and the braking rates numbers in (0, 12]: {form}") from None
+            gamma = vals[0] if vals else SensorRacer.SAFE_GRIP_EXPONENT
             if not math.isfinite(gamma) or gamma < 1.0:
                 raise PolicyError(f"{name!r}: the grip exponent after '{base}:' must be a number >= 1 (1: braking in proportion "
                                   f"to the grip), got {gamma:g}")
-            return {**gains, "grip_exponent": gamma}
+            out = {**gains, "grip_exponent": gamma}
+            for key, v in zip(("decel_per_mu", "fight_decel_per_mu"), vals[1:]):
+                if not math.isfinite(v) or not 0.0 < v <= 12.0:
+                    raise PolicyError(f"{name!r}: a braking rate after '{base}:<gamma>:' is m/s^2 on asphalt (mu 1) and must be "
+                                      f"in (0, 12] (the default: {SensorDriver.FAST['decel_per_mu']:g}), got {v:g}")
+                out[key] = v
+            return out
     return None
 
 
