@@ -79,14 +79,31 @@ def _hz(spec: str) -> float:
     return float(load_policy(spec).env_overrides.get("control_hz", 10.0))
 
 
+def _worker_init() -> None:
+    """A forked trial worker: SIGTERM kills it (not the parent's stop handler), it ignores Ctrl-C (the parent stops
+    the pool) and dies with its parent, even a SIGKILLed one."""
+    import signal
+
+    from torcsrl.utils.faults import ignore_signals_in_worker
+
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    ignore_signals_in_worker()
+
+
 def run_grid(specs: list[str], tracks: list[str], surfaces: list[str], laps: int, workers: int, hz: dict[str, float],
              starts: int = 1) -> list[dict]:
     """One trial per (driver, track, surface, start); start 0 is the grid, start k > 0 a seeded random point."""
     jobs = [(s, t, u, laps, hz[s], k) for s in specs for t in tracks for u in surfaces for k in range(starts)]
     if workers <= 1:
         return [_cell(j) for j in jobs]
-    with ProcessPoolExecutor(workers) as ex:
-        return list(ex.map(_cell, jobs))
+    from torcsrl.utils.faults import stop_pool
+
+    with ProcessPoolExecutor(workers, initializer=_worker_init) as ex:
+        try:
+            return list(ex.map(_cell, jobs))
+        except BaseException:  # SIGTERM / Ctrl-C (main's graceful_termination) or a failed trial: no worker outlives it
+            stop_pool(ex)
+            raise
 
 
 def summarise(rows: list[dict], expert: dict[tuple[str, str], float], generated: set[str]) -> list[dict]:
@@ -150,6 +167,17 @@ def curve(run_dirs: list[str], tracks: list[str], surfaces: list[str], laps: int
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The command line; SIGTERM or Ctrl-C stops it with one line and exit status 128 + the signal, its pool shut."""
+    from torcsrl.utils.faults import cli_error, graceful_termination
+
+    try:
+        with graceful_termination():
+            return _main(argv)
+    except KeyboardInterrupt as err:  # Interrupted (SIGTERM) is one
+        return cli_error("generalisation", err, stopped="no table written")
+
+
+def _main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     extra = argv[argv.index("--") + 1:] if "--" in argv else []
     argv = argv[: argv.index("--")] if "--" in argv else argv

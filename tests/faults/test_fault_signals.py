@@ -103,3 +103,18 @@ def test_training_with_collector_workers_stops_with_the_run(tmp_path, sig):
         assert cmd == ["python", "-m", "torcsrl.train", "env=toy", "debug=smoke", "collector.num_workers=2",
                        "checkpoint.every_frames=200", "total_frames=100000", f"run_dir={run}", "checkpoint.resume=latest"], cmd
     assert load_checkpoint(last)["counters"]["frames"] >= 200
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL])
+def test_generalisation_benchmark_workers_stop_with_it(tmp_path, sig):
+    """``benchmarks/generalisation.py --workers 2`` stopped midway: its trial workers go with it (SIGTERM: one line,
+    exit 143; SIGKILL: they die with their parent)."""
+    proc = subprocess.Popen([sys.executable, str(ROOT / "benchmarks" / "generalisation.py"), "--screen", "--policy", "heuristic",
+                             "--laps", "10", "--generated", "2", "--surfaces", "asphalt", "--workers", "2", "--out", str(tmp_path / "g")],
+                            cwd=ROOT, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    _wait_for(proc, lambda: len(descendants(proc.pid)) >= 2)
+    time.sleep(3.0)  # the workers are driving
+    err = _signal_and_check(proc, sig, min_children=2)
+    if sig == signal.SIGTERM:
+        assert "generalisation: error: stopped by SIGTERM; no table written" in err
+    assert not (tmp_path / "g" / "generalisation.json").exists()
