@@ -189,9 +189,9 @@ def test_safe_racer_brakes_as_the_bold_one_on_asphalt_and_earlier_on_low_grip():
 
 
 def test_racer_safe_takes_an_asphalt_braking_rate_and_a_rate_for_a_fight():
-    """``racer_safe:<gamma>:<decel>[:<fight decel>]``: the braking it plans with on asphalt [m/s^2 at mu 1] in place of
-    9 (a margin where the bold racer plans at the limit), and with a third value the rate while a car is within 60 m
-    (any sector): alone it drives as the second value says, in a fight as the third."""
+    """``racer_safe:<gamma>:<decel>[:<fight decel>[:<fight m>]]``: the braking it plans with on asphalt [m/s^2 at mu 1]
+    in place of 9 (a margin where the bold racer plans at the limit), and with a third value the rate while a car is
+    within 60 m (or the fourth value; any sector): alone it drives as the second value says, in a fight as the third."""
     import numpy as np
     import torch
     from tensordict import TensorDict
@@ -215,9 +215,12 @@ def test_racer_safe_takes_an_asphalt_braking_rate_and_a_rate_for_a_fight():
     assert pedal(fight, alone) == pedal(m8, alone) < 0.0  # alone: the margin
     assert pedal(fight, far) == pedal(m8, far)  # a car beyond 60 m is no fight
     assert pedal(fight, beside) == pedal(load_policy("racer_safe:1.27"), beside) > 0.0  # a car 40 m away: the limit
+    wide = load_policy("racer_safe:1.27:8:9:150")  # a fight is a car within 150 m
+    assert wide.race.fight_m == 150.0 and pedal(wide, far) == pedal(load_policy("racer_safe:1.27"), far) > 0.0
     assert known_teacher("racer_safe:1.27:8:9") and make_teacher("racer_safe:1.27:8:9").race.fight_decel_per_mu == 9.0
     for bad, msg in (("racer_safe:1.5:0", r"in \(0, 12\]"), ("racer_safe:1.5:8:13", r"in \(0, 12\]"),
-                     ("racer_safe:1.5:8:9:9", "at most three"), ("racer_safe:1.5:fast", "must be a number")):
+                     ("racer_safe:1.5:8:9:60:1", "at most four"), ("racer_safe:1.5:8:9:250", r"in \(0, 200\]"),
+                     ("racer_safe:1.5:fast", "must be a number")):
         with pytest.raises(PolicyError, match=msg):
             load_policy(bad)
         with pytest.raises(DemoError, match=msg):

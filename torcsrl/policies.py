@@ -28,9 +28,9 @@ spec                          policy
 ``racer``                     :class:`SensorRacer`: ``sensor_fast`` that passes (or lifts for) the
                               cars its ``opponents`` sensor shows: the race student's teacher
 ``racer_bold``                the same with ``SensorRacer.BOLD`` (passes more, collides more)
-``racer_safe[:<gamma>[:<d>[:<f>]]]`` ``racer_bold`` braking at ``9 mu^gamma`` m/s^2 (gamma 2): as bold on
-                              asphalt, a margin on low grip; ``<d>`` in place of 9: a margin on asphalt too;
-                              ``<f>``: the rate while a car is within 60 m (pushes in a fight)
+``racer_safe[:<gamma>[:<d>[:<f>[:<m>]]]]`` ``racer_bold`` braking at ``9 mu^gamma`` m/s^2 (gamma 2): as
+                              bold on asphalt, a margin on low grip; ``<d>`` in place of 9: a margin on asphalt
+                              too; ``<f>``: the rate while a car is within 60 m (or ``<m>``): pushes in a fight
 ``racer_clean[:<gamma>...]``  ``racer_safe`` with a 1.5-lane following corridor near bends (fewer contacts)
 ``heuristic``                 a sensor-only driver in the style of the TORCS SCR sample robot:
                               steers from ``angle`` / ``trackPos`` and the longest rangefinder
@@ -110,7 +110,7 @@ REFERENCE_CAMERA_POLICY = Path(__file__).resolve().parent / "assets" / "referenc
 REFERENCE_RACER_POLICY = Path(__file__).resolve().parent / "assets" / "reference_racer.pt"
 #: Names of the built-in policies (anything else is a checkpoint path).
 BUILTIN_POLICIES = ("expert", "expert_centre", "heuristic", "sensor", "sensor_grip", "sensor_fast", "sensor_sight[:<metres>]",
-                    "sensor_fast_sight[:<metres>]", "racer", "racer_bold", "racer_safe[:<gamma>[:<decel>[:<fight decel>]]]", "racer_clean[:<gamma>[:<decel>[:<fight decel>]]]", "random", "reference", "reference-td3", "reference_camera", "reference_racer")
+                    "sensor_fast_sight[:<metres>]", "racer", "racer_bold", "racer_safe[:<gamma>[:<decel>[:<fight decel>[:<fight m>]]]]", "racer_clean[:<gamma>[:<decel>[:<fight decel>[:<fight m>]]]]", "random", "reference", "reference-td3", "reference_camera", "reference_racer")
 
 
 class PolicyError(ValueError):
@@ -878,7 +878,7 @@ class SensorRacer(SensorDriver):
 
     * **Fighting**: with ``fight_decel_per_mu`` [m/s^2 at mu 1] it plans its braking (and corner speed) at that rate
       while a car is within ``fight_m`` [m] (any sector), at its own ``decel_per_mu`` otherwise — a margin when it
-      drives alone, the limit in a fight (``racer_safe:<gamma>:<decel>:<fight decel>``).
+      drives alone, the limit in a fight (``racer_safe:<gamma>:<decel>:<fight decel>[:<fight m>]``).
 
     Without an ``opponents`` key it drives as ``sensor_fast``.
     """
@@ -1055,16 +1055,18 @@ def _sight_teacher(name: str, **keys: str) -> SensorDriver | None:
 
 
 def racer_gains(name: str) -> dict[str, Any] | None:
-    """The :class:`SensorRacer` gains of ``racer_safe[:<gamma>[:<decel>[:<fight decel>]]]`` (and ``racer_clean[...]``):
-    ``SensorRacer.BOLD`` / ``CLEAN`` with ``grip_exponent`` gamma, where given ``decel_per_mu`` [m/s^2 at mu 1; the
-    default is ``SensorDriver.FAST``'s 9] and ``fight_decel_per_mu`` (the rate with a car within 60 m); None for other
-    names; :class:`PolicyError` (one line) for a bad value."""
+    """The :class:`SensorRacer` gains of ``racer_safe[:<gamma>[:<decel>[:<fight decel>[:<fight m>]]]]`` (and
+    ``racer_clean[...]``): ``SensorRacer.BOLD`` / ``CLEAN`` with ``grip_exponent`` gamma, where given ``decel_per_mu``
+    [m/s^2 at mu 1; the default is ``SensorDriver.FAST``'s 9], ``fight_decel_per_mu`` (the rate while a car is within
+    ``fight_m``) and ``fight_m`` [m, default 60, at most the opponents sensor's 200]; None for other names;
+    :class:`PolicyError` (one line) for a bad value."""
     for base, gains in (("racer_safe", SensorRacer.BOLD), ("racer_clean", SensorRacer.CLEAN)):
         if name == base or name.startswith(base + ":"):
-            form = f"{base}[:<gamma>[:<decel>[:<fight decel>]]] (decel in m/s^2 at mu 1), e.g. {base}:2 or {base}:1.27:8:9"
+            form = (f"{base}[:<gamma>[:<decel>[:<fight decel>[:<fight m>]]]] (decel in m/s^2 at mu 1), e.g. {base}:2 or "
+                    f"{base}:1.27:8:9")
             parts = name.split(":")[1:]
-            if len(parts) > 3:
-                raise PolicyError(f"{name!r}: at most three values after '{base}': {form}")
+            if len(parts) > 4:
+                raise PolicyError(f"{name!r}: at most four values after '{base}': {form}")
             try:
                 vals = [float(v) for v in parts]
             except ValueError:
@@ -1079,6 +1081,11 @@ def racer_gains(name: str) -> dict[str, Any] | None:
                     raise PolicyError(f"{name!r}: a braking rate after '{base}:<gamma>:' is m/s^2 on asphalt (mu 1) and must be "
                                       f"in (0, 12] (the default: {SensorDriver.FAST['decel_per_mu']:g}), got {v:g}")
                 out[key] = v
+            if len(vals) == 4:
+                if not math.isfinite(vals[3]) or not 0.0 < vals[3] <= 200.0:
+                    raise PolicyError(f"{name!r}: the fight distance (the fourth value) is in metres and must be in (0, 200] "
+                                      f"(the opponents sensor's range), got {vals[3]:g}")
+                out["fight_m"] = vals[3]
             return out
     return None
 
