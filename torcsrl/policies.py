@@ -907,6 +907,10 @@ class SensorRacer(SensorDriver):
                  opponents_key: str = "opponents", **kw: Any) -> None:
         from torcsrl.envs.traffic import OPPONENT_RANGE_M, OPPONENT_SECTORS
 
+        if fight_decel_per_mu is not None and not (math.isfinite(float(fight_decel_per_mu)) and float(fight_decel_per_mu) > 0.0):
+            raise ValueError(f"SensorRacer fight_decel_per_mu must be a positive rate [m/s^2 at mu 1], got {fight_decel_per_mu}")
+        if not (math.isfinite(float(fight_m)) and 0.0 < float(fight_m) <= OPPONENT_RANGE_M):
+            raise ValueError(f"SensorRacer fight_m must be in (0, {OPPONENT_RANGE_M:g}] m (the opponents sensor's range), got {fight_m}")
         super().__init__(**{**SensorDriver.FAST, **kw})
         self.spec = "racer"
         self.obs_keys = ("rangefinder", "state", "opponents")
@@ -1054,38 +1058,35 @@ def _sight_teacher(name: str, **keys: str) -> SensorDriver | None:
     return None
 
 
+#: The values of ``racer_safe:<gamma>:<decel>:<fight decel>:<fight m>``, in order: (SensorRacer keyword, what it is,
+#: the test it must pass, the allowed range as the error says it).
+_RACER_VALUES = (("grip_exponent", "the grip exponent", lambda v: v >= 1.0, ">= 1 (1: braking in proportion to the grip)"),
+                 ("decel_per_mu", "the braking rate", lambda v: 0.0 < v <= 12.0, "in (0, 12] m/s^2 at mu 1 (the default: 9)"),
+                 ("fight_decel_per_mu", "the braking rate in a fight", lambda v: 0.0 < v <= 12.0, "in (0, 12] m/s^2 at mu 1"),
+                 ("fight_m", "the fight distance", lambda v: 0.0 < v <= 200.0, "in (0, 200] m (the opponents sensor's range)"))
+
+
 def racer_gains(name: str) -> dict[str, Any] | None:
     """The :class:`SensorRacer` gains of ``racer_safe[:<gamma>[:<decel>[:<fight decel>[:<fight m>]]]]`` (and
-    ``racer_clean[...]``): ``SensorRacer.BOLD`` / ``CLEAN`` with ``grip_exponent`` gamma, where given ``decel_per_mu``
-    [m/s^2 at mu 1; the default is ``SensorDriver.FAST``'s 9], ``fight_decel_per_mu`` (the rate while a car is within
-    ``fight_m``) and ``fight_m`` [m, default 60, at most the opponents sensor's 200]; None for other names;
+    ``racer_clean[...]``): ``SensorRacer.BOLD`` / ``CLEAN`` with ``grip_exponent`` gamma (default 2), where given
+    ``decel_per_mu`` [m/s^2 at mu 1; the default is ``SensorDriver.FAST``'s 9], ``fight_decel_per_mu`` (the rate while
+    a car is within ``fight_m``) and ``fight_m`` [m, default 60] (:data:`_RACER_VALUES`); None for other names;
     :class:`PolicyError` (one line) for a bad value."""
     for base, gains in (("racer_safe", SensorRacer.BOLD), ("racer_clean", SensorRacer.CLEAN)):
         if name == base or name.startswith(base + ":"):
-            form = (f"{base}[:<gamma>[:<decel>[:<fight decel>[:<fight m>]]]] (decel in m/s^2 at mu 1), e.g. {base}:2 or "
-                    f"{base}:1.27:8:9")
+            form = f"{base}[:<gamma>[:<decel>[:<fight decel>[:<fight m>]]]], e.g. {base}:2 or {base}:1.27:8:9"
             parts = name.split(":")[1:]
-            if len(parts) > 4:
+            if len(parts) > len(_RACER_VALUES):
                 raise PolicyError(f"{name!r}: at most four values after '{base}': {form}")
-            try:
-                vals = [float(v) for v in parts]
-            except ValueError:
-                raise PolicyError(f"{name!r}: the grip exponent must be a number >= 1 and the braking rates numbers in (0, 12]: {form}") from None
-            gamma = vals[0] if vals else SensorRacer.SAFE_GRIP_EXPONENT
-            if not math.isfinite(gamma) or gamma < 1.0:
-                raise PolicyError(f"{name!r}: the grip exponent after '{base}:' must be a number >= 1 (1: braking in proportion "
-                                  f"to the grip), got {gamma:g}")
-            out = {**gains, "grip_exponent": gamma}
-            for key, v in zip(("decel_per_mu", "fight_decel_per_mu"), vals[1:]):
-                if not math.isfinite(v) or not 0.0 < v <= 12.0:
-                    raise PolicyError(f"{name!r}: a braking rate after '{base}:<gamma>:' is m/s^2 on asphalt (mu 1) and must be "
-                                      f"in (0, 12] (the default: {SensorDriver.FAST['decel_per_mu']:g}), got {v:g}")
+            out = {**gains, "grip_exponent": SensorRacer.SAFE_GRIP_EXPONENT}
+            for text, (key, what, ok, allowed) in zip(parts, _RACER_VALUES):
+                try:
+                    v = float(text)
+                except ValueError:
+                    raise PolicyError(f"{name!r}: {what} must be a number {allowed}, got {text!r}: {form}") from None
+                if not math.isfinite(v) or not ok(v):
+                    raise PolicyError(f"{name!r}: {what} must be {allowed}, got {v:g}")
                 out[key] = v
-            if len(vals) == 4:
-                if not math.isfinite(vals[3]) or not 0.0 < vals[3] <= 200.0:
-                    raise PolicyError(f"{name!r}: the fight distance (the fourth value) is in metres and must be in (0, 200] "
-                                      f"(the opponents sensor's range), got {vals[3]:g}")
-                out["fight_m"] = vals[3]
             return out
     return None
 
