@@ -15,6 +15,15 @@ found never to brake on asphalt (torcsrl/assets/reference_camera.md).
 fitted): it then prints the student's and the teacher's pedal around each braking onset of the teacher. A student
 that brakes as hard as its teacher there but not on its own states suffers covariate shift (more DAgger); one that
 brakes less there too cannot read the bend from the image.
+
+``--opponents K`` races the student against K scripted experts at ``--pace`` (the race protocol of ``evaluate
+mode=race``: a grid, its order drawn from ``--seed``) while a racer teacher (``--teacher racer_safe:1.5``, any
+``racer*`` spec) labels every state with the opponents it sees. It prints the race position, contacts and overtakes,
+and splits the gaps into the steps with a car within ``--near-m`` [m] (the nearest opponents sector) and the steps
+clear of one: a student that follows its teacher alone but not in a fight (or the reverse) shows it here. The table
+gains the nearest car's distance [m] (200: none in range).
+
+    python benchmarks/teacher_gap.py RACER.pt --track esses --opponents 3 --teacher racer_safe:1.5 --steps 3000
 """
 
 from __future__ import annotations
@@ -35,12 +44,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=123)
     ap.add_argument("--frames", default=None, help="PNG of the last frames (camera students)")
     ap.add_argument("--driver", choices=("student", "teacher"), default="student", help="whose action is applied")
+    ap.add_argument("--opponents", type=int, default=0, help="scripted expert opponents on the grid (0: alone)")
+    ap.add_argument("--pace", type=float, default=0.85, help="the opponents' fraction of the expert's speed profile")
+    ap.add_argument("--near-m", type=float, default=15.0, help="a step is 'near a car' when one is closer than this [m]")
     a = ap.parse_args(argv)
+    if a.opponents < 0:
+        ap.error(f"--opponents must be >= 0, got {a.opponents}")
+    if not 0.0 < a.pace <= 1.5:
+        ap.error(f"--pace must be in (0, 1.5] (a fraction of the expert's speed profile), got {a.pace}")
+    if not 0.0 < a.near_m <= 200.0:
+        ap.error(f"--near-m must be in (0, 200] m (the opponents sensor's range), got {a.near_m}")
     torch.set_num_threads(1)
     from omegaconf import OmegaConf
     from torchrl.envs.utils import step_mdp
 
     from torcsrl.demos import make_demo_env, make_teacher
+    from torcsrl.evaluate.race import race_traffic
     from torcsrl.policies import CheckpointPolicy, EpisodeContext
 
     pol = CheckpointPolicy(a.checkpoint)
@@ -48,13 +67,20 @@ def main(argv: list[str] | None = None) -> int:
     cfg.env.track, cfg.env.surface = a.track, a.surface
     if "procedural" in cfg.env:  # a student of a procedural pool (track=procedural) drove pool tracks 80 % of the time
         cfg.env.procedural = None
+    if a.opponents:
+        if "opponents" not in pol.obs_keys:
+            ap.error(f"--opponents needs a student that reads the opponents sensor; {a.checkpoint} reads {list(pol.obs_keys)}")
+        cfg.env.traffic = race_traffic(a.opponents, a.pace)
+    if cfg.get("demos") is not None:  # the episode cap is --steps (the run's demos.episode_steps would cut a race short)
+        cfg.demos.episode_steps = int(a.steps) + 1
     env = make_demo_env(cfg, a.seed)
     core = env.base_env.core
+    traffic = core.traffic if a.opponents else None
     teacher = make_teacher(a.teacher)
     grip = getattr(pol.actor, "grip_head", None) is not None  # algo.grip_estimate: the actor's own estimate of mu
     td = env.reset()
     teacher.reset(EpisodeContext(track=core.car_tracks[0], seed=a.seed, dt=float(core.dt)))
-    rows, frames, end = [], [], "step cap"
+    rows, frames, near, end = [], [], [], "step cap"
     try:
         for t in range(a.steps):
             teacher(td)
@@ -67,6 +93,8 @@ def main(argv: list[str] | None = None) -> int:
             st = td.get("state_clean")
             rows.append((float(td.get(("info", "distFromStart"))), float(st[2]), float(st[1]), float(st[0]), *act.tolist(), *label.tolist(),
                          mu_hat, float(td.get(("info", "surfaceMu")).reshape(-1)[0])))
+            if traffic is not None:  # the nearest car over the 36 sectors of the clean opponents reading [m]
+                near.append(float(td.get("opponents_clean").reshape(-1).min()))
             if "pixels" in td.keys():
                 frames.append(td.get("pixels")[-3:].clone())  # the newest frame (of a frame_stack student's stack)
             td = env.step(td)
@@ -76,6 +104,7 @@ def main(argv: list[str] | None = None) -> int:
                       f"{int(nxt.get(('info', 'lap')).reshape(-1)[0])} lap(s)"
                 break
             td = step_mdp(td)
+        race = None if traffic is None else (int(traffic.race_pos[0]), int(traffic.collisions[0]), int(traffic.overtakes[0]))
     finally:
         env.close()
     r = np.asarray(rows)
@@ -83,14 +112,26 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{a.checkpoint} on {a.track}/{a.surface}, teacher {a.teacher}, {a.driver} driving: {end}")
     print(f"mean |steer gap| {gap[:, 0].mean():.3f}, mean |pedal gap| {gap[:, 1].mean():.3f}; "
           f"brakes on {100 * (r[:, 5] < 0).mean():.0f} % of steps (teacher: {100 * (r[:, 7] < 0).mean():.0f} %)")
+    if race is not None:
+        d = np.asarray(near)
+        print(f"race against {a.opponents} experts at pace {a.pace:g}: position {race[0]} of {a.opponents + 1} at the end, "
+              f"{race[1]} contact(s), {race[2]} overtake(s)")
+        for name, m in ((f"near a car (< {a.near_m:g} m)", d < a.near_m), ("clear of cars", d >= a.near_m)):
+            if m.any():
+                print(f"{name}: {int(m.sum())} steps, mean |steer gap| {gap[m, 0].mean():.3f}, mean |pedal gap| {gap[m, 1].mean():.3f}, "
+                      f"mean pedal student {r[m, 5].mean():+.3f}, teacher {r[m, 7].mean():+.3f}")
+            else:
+                print(f"{name}: 0 steps")
     if grip:
         err = r[:, 8] - r[:, 9]
         print(f"grip estimate: mean {r[:, 8].mean():.3f} for the road's mu {r[:, 9].mean():.3f} (RMSE {np.sqrt((err ** 2).mean()):.3f}; "
               f"last 100 steps: mean {r[-100:, 8].mean():.3f})")
     else:
         r = r[:, :8]
+    if race is not None:
+        r = np.concatenate([r, np.asarray(near)[:, None]], axis=1)
     head = ("| dist m | speedX km/h | trackPos | angle rad | steer | pedal | teacher steer | teacher pedal |" + (" mu_hat | mu |" if grip else "")
-            + "\n|" + "---|" * r.shape[1])
+            + (" nearest car m |" if race is not None else "") + "\n|" + "---|" * r.shape[1])
     if a.driver == "student":
         print(head)
         for row in r[-40::4]:

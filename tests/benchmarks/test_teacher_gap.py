@@ -25,3 +25,34 @@ def test_the_student_scored_on_its_teachers_own_states_and_on_its_own(capsys):
     assert b.main([str(STUDENT), "--track", "oval", "--teacher", "sensor", "--steps", "40"]) == 0
     out = capsys.readouterr().out
     assert "student driving" in out and "| dist m | speedX km/h |" in out
+
+
+RACER = ROOT / "torcsrl" / "assets" / "reference_racer.pt"  # reads the opponents sensor
+
+
+def test_a_racer_and_its_teacher_in_a_race_split_near_a_car_and_clear(capsys):
+    b = _bench()
+    assert b.main([str(RACER), "--track", "oval", "--teacher", "racer_safe:1.5", "--opponents", "3", "--steps", "200"]) == 0
+    out = capsys.readouterr().out
+    m = re.search(r"race against 3 experts at pace 0.85: position ([1-4]) of 4 at the end, (\d+) contact", out)
+    assert m, out
+    near = re.search(r"near a car \(< 15 m\): (\d+) steps", out)
+    clear = re.search(r"clear of cars: (\d+) steps", out)
+    assert near and clear and int(near.group(1)) + int(clear.group(1)) == 200  # every step in one group
+    assert int(near.group(1)) > 0  # from a grid start, cars are within 15 m
+    last = [ln for ln in out.splitlines() if ln.startswith("| ") and not ln.startswith("| dist")][-1]
+    assert 0.0 < float(last.split("|")[-2]) <= 200.0  # the nearest car's distance column [m]
+
+
+def test_a_race_needs_a_student_that_reads_opponents_and_a_pace_in_range(capsys):
+    b = _bench()
+    for argv, words in (([str(STUDENT), "--opponents", "3"], "needs a student that reads the opponents sensor"),
+                        ([str(RACER), "--opponents", "3", "--pace", "2"], "--pace must be in (0, 1.5]"),
+                        ([str(RACER), "--opponents", "-1"], "--opponents must be >= 0")):
+        try:
+            b.main(argv)
+        except SystemExit as e:
+            assert e.code == 2
+        else:
+            raise AssertionError(f"{argv} was accepted")
+        assert words in capsys.readouterr().err
