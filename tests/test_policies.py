@@ -56,6 +56,23 @@ def test_ensemble_combines_its_members_actions(states):
     assert (cautious[:, 1] < acts[:, :, 1].mean(0)).any()
     three = load_policy(f"{A}+{B}+{A}@median")
     torch.testing.assert_close(_act(three, states), acts[0])  # odd count: the middle member (A, twice)
+    medoid = _act(load_policy(f"{A}+{B}@medoid"), states)
+    assert ((medoid == acts[0]).all(-1) | (medoid == acts[1]).all(-1)).all()  # every row one member's own action
+    torch.testing.assert_close(_act(load_policy(f"{A}+{B}+{B}@medoid"), states), acts[1])  # B, twice: the median's side
+
+
+def test_the_medoid_reduce_takes_one_members_command_where_the_mean_is_neither():
+    # three racers at a car ahead: two pass it on the left (+ steer), one on the right; the mean steers at it
+    acts = torch.tensor([[[0.50, 1.0]], [[-0.50, 1.0]], [[0.40, 0.2]]])  # [members, rows, (steer, pedal)]
+    torch.testing.assert_close(EnsemblePolicy.combine(acts, "medoid"), torch.tensor([[0.50, 1.0]]))  # L1 to (0.4, 1.0): 0.1
+    assert abs(float(EnsemblePolicy.combine(acts, "mean")[0, 0]) - 0.1333) < 1e-3
+    rows = torch.randn(5, 7, 2)  # any shape of rows: each picked row is a member's row, nearest the median
+    out = EnsemblePolicy.combine(rows, "medoid")
+    dist = (rows - rows.quantile(0.5, dim=0)).abs().sum(-1)
+    best = rows[dist.argmin(0), torch.arange(7)]
+    torch.testing.assert_close(out, best)
+    with pytest.raises(PolicyError, match="allowed: mean, median, cautious, medoid"):
+        EnsemblePolicy.combine(rows, "loudest")
 
 
 def test_an_ensemble_file_drives_as_its_spec(tmp_path, states):
@@ -92,7 +109,7 @@ def test_an_ensemble_file_drives_as_its_spec(tmp_path, states):
 
 def test_ensemble_bad_input_fails_in_one_line(tmp_path):
     cases = {
-        f"{A}+{B}@loudest": "reduce='loudest' is not known; allowed: mean, median, cautious",
+        f"{A}+{B}@loudest": "reduce='loudest' is not known; allowed: mean, median, cautious, medoid",
         f"{A}+{REFERENCE_RACER_POLICY}": "must read the same observations",  # rangefinder + state against + opponents
         f"{A}+{REFERENCE_CAMERA_POLICY}": "is itself an ensemble",  # the shipped camera driver is a 4-seed ensemble
         f"{A}+{tmp_path / 'nothing.pt'}": "neither a checkpoint file that exists",
