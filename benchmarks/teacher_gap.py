@@ -21,7 +21,8 @@ mode=race``: a grid, its order drawn from ``--seed``) while a racer teacher (``-
 ``racer*`` spec) labels every state with the opponents it sees. It prints the race position, contacts and overtakes,
 and splits the gaps into the steps with a car within ``--near-m`` [m] (the nearest opponents sector) and the steps
 clear of one: a student that follows its teacher alone but not in a fight (or the reverse) shows it here. The table
-gains the nearest car's distance [m] (200: none in range).
+gains the nearest car's distance [m] (200: none in range). An ensemble file (``python -m torcsrl.policies ensemble``)
+is scored as it drives: its members' actions combined by its reduce, the grip estimate their mean.
 
     python benchmarks/teacher_gap.py RACER.pt --track esses --opponents 3 --teacher racer_safe:1.5 --steps 3000
 """
@@ -60,10 +61,17 @@ def main(argv: list[str] | None = None) -> int:
 
     from torcsrl.demos import make_demo_env, make_teacher
     from torcsrl.evaluate.race import race_traffic
-    from torcsrl.policies import CheckpointPolicy, EpisodeContext
+    from torcsrl.policies import CheckpointPolicy, EnsemblePolicy, EpisodeContext, PolicyError, load_policy
 
-    pol = CheckpointPolicy(a.checkpoint)
-    cfg = OmegaConf.create(torch.load(a.checkpoint, map_location="cpu", weights_only=False)["config"])
+    try:
+        pol = load_policy(a.checkpoint)
+    except PolicyError as err:
+        ap.error(str(err))
+    members = list(pol.members) if isinstance(pol, EnsemblePolicy) else [pol]  # an ensemble file: its reduce combines
+    if not all(isinstance(m, CheckpointPolicy) for m in members):
+        ap.error(f"{a.checkpoint} is a built-in driver; teacher_gap scores a trained student (a checkpoint or policy file)")
+    reduce = pol.reduce if isinstance(pol, EnsemblePolicy) else None
+    cfg = OmegaConf.create(members[0].config_yaml)  # the members of an ensemble share the run's observation pipeline
     cfg.env.track, cfg.env.surface = a.track, a.surface
     if "procedural" in cfg.env:  # a student of a procedural pool (track=procedural) drove pool tracks 80 % of the time
         cfg.env.procedural = None
@@ -77,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     core = env.base_env.core
     traffic = core.traffic if a.opponents else None
     teacher = make_teacher(a.teacher)
-    grip = getattr(pol.actor, "grip_head", None) is not None  # algo.grip_estimate: the actor's own estimate of mu
+    grip = all(getattr(m.actor, "grip_head", None) is not None for m in members)  # algo.grip_estimate: the actor's own estimate of mu
     td = env.reset()
     teacher.reset(EpisodeContext(track=core.car_tracks[0], seed=a.seed, dt=float(core.dt)))
     rows, frames, near, end = [], [], [], "step cap"
@@ -87,8 +95,9 @@ def main(argv: list[str] | None = None) -> int:
             label = td.get("action").clone()
             with torch.no_grad():  # the demo env already applies the run's observation pipeline (scaling included):
                 obs = [td.get(k) for k in pol.obs_keys]
-                act = pol.actor(*obs).reshape(label.shape)  # the actor, not pol(td)
-                mu_hat = float(pol.actor.grip(pol.actor.encoder(*obs))) if grip else float("nan")
+                acts = torch.stack([m.actor(*obs).reshape(label.shape) for m in members])  # the actors, not pol(td)
+                act = acts[0] if reduce is None else EnsemblePolicy.combine(acts, reduce)
+                mu_hat = (sum(float(m.actor.grip(m.actor.encoder(*obs))) for m in members) / len(members)) if grip else float("nan")
             td.set("action", act if a.driver == "student" else label)
             st = td.get("state_clean")
             rows.append((float(td.get(("info", "distFromStart"))), float(st[2]), float(st[1]), float(st[0]), *act.tolist(), *label.tolist(),

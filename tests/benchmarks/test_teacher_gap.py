@@ -56,3 +56,23 @@ def test_a_race_needs_a_student_that_reads_opponents_and_a_pace_in_range(capsys)
         else:
             raise AssertionError(f"{argv} was accepted")
         assert words in capsys.readouterr().err
+
+
+def test_an_ensemble_file_is_scored_as_it_drives(tmp_path, capsys):
+    from torcsrl.policies import export_ensemble
+
+    b = _bench()
+    args = ["--track", "oval", "--teacher", "racer_safe:1.5", "--steps", "60"]
+    assert b.main([str(RACER), *args]) == 0
+    one = capsys.readouterr().out
+    ens = export_ensemble([RACER, RACER], tmp_path / "two.pt", reduce="medoid")  # two copies: the racer's own actions
+    assert b.main([str(ens), *args]) == 0
+    two = capsys.readouterr().out
+    gaps = [re.search(r"mean \|steer gap\| ([0-9.]+), mean \|pedal gap\| ([0-9.]+)", o).groups() for o in (one, two)]
+    assert gaps[0] == gaps[1] and "grip estimate: mean" in two
+    try:
+        b.main(["racer_safe:1.5", *args])
+    except SystemExit as e:
+        assert e.code == 2 and "is a built-in driver" in capsys.readouterr().err
+    else:
+        raise AssertionError("a built-in driver was scored")
