@@ -48,10 +48,10 @@ def test_row_actor_equals_the_one_car_policy_row_for_row():
 def test_row_actor_keeps_each_rows_history_and_grip_estimate_as_the_one_car_policy():
     """The shipped racer keeps 3 s of its state (state_history=30), estimates the grip from it and drives on the newest
     1 s: a batch of 5 rows, two of which restart mid-way, gives each row the actions of its own one-car policy."""
-    pol = load_policy("reference_racer")
+    pol = load_policy("reference_racer").members[0]  # the shipped racer is a medoid ensemble of six such students
     assert pol.state_history > 1 and pol.actor.grip_head is not None and pol.actor._selects and supports_batch(pol)
     g = torch.Generator().manual_seed(0)
-    batch, ones = RowActor(pol), [load_policy("reference_racer") for _ in range(5)]
+    batch, ones = RowActor(pol), [load_policy("reference_racer").members[0] for _ in range(5)]
     for t in range(8):
         obs = {k: torch.rand(5, *s, generator=g) * 60 for k, s in pol.obs_shapes.items()}
         if t == 5:  # rows 1 and 3 start new episodes
@@ -69,8 +69,9 @@ def test_row_actor_keeps_each_rows_history_and_grip_estimate_as_the_one_car_poli
 
 
 def test_a_stateful_racer_drives_batched_cells_as_one_car_at_a_time():
-    """reference_racer (history + grip head) in groups of 2 cars that restart for the next cell: the one-car rows."""
-    pol = load_policy("reference_racer")
+    """A student of reference_racer (history + grip head) in groups of 2 cars that restart for the next cell: the
+    one-car rows."""
+    pol = load_policy("reference_racer").members[0]
     degs = [None, "state.noise@3", "rangefinder.dropout@2"]
     kw = dict(episodes=2, laps=1, seed=5, max_steps=60, env_kwargs={"start": "random"})
     batched = run_batch(pol, "rallycross", None, degs, max_cars=2, **kw)

@@ -16,6 +16,7 @@ from torcsrl.policies import (
     EnsemblePolicy,
     PolicyError,
     export_ensemble,
+    export_member,
     load_policy,
 )
 
@@ -108,9 +109,11 @@ def test_an_ensemble_file_drives_as_its_spec(tmp_path, states):
 
 
 def test_ensemble_bad_input_fails_in_one_line(tmp_path):
+    racer = export_member(REFERENCE_RACER_POLICY, 0, tmp_path / "racer0.pt")  # one student of the shipped racer
     cases = {
         f"{A}+{B}@loudest": "reduce='loudest' is not known; allowed: mean, median, cautious, medoid",
-        f"{A}+{REFERENCE_RACER_POLICY}": "must read the same observations",  # rangefinder + state against + opponents
+        f"{A}+{racer}": "must read the same observations",  # rangefinder + state against + opponents
+        f"{A}+{REFERENCE_RACER_POLICY}": "is itself an ensemble",  # the shipped racer is a 6-seed ensemble
         f"{A}+{REFERENCE_CAMERA_POLICY}": "is itself an ensemble",  # the shipped camera driver is a 4-seed ensemble
         f"{A}+{tmp_path / 'nothing.pt'}": "neither a checkpoint file that exists",
     }
@@ -317,8 +320,10 @@ def test_the_shipped_racer_reads_the_race_sensors_and_laps_alone():
     from torcsrl.evaluate import run_cell
     from torcsrl.policies import REFERENCE_RACER_POLICY
 
-    pol = load_policy("reference_racer")
-    assert REFERENCE_RACER_POLICY.is_file() and pol.obs_keys == ("rangefinder", "state", "opponents")
-    assert pol.env_overrides["control_hz"] == 10
-    rows, _ = run_cell(pol, "oval", "asphalt", laps=1)  # no opponents: its sectors read free (200 m)
+    racer = load_policy("reference_racer")
+    assert REFERENCE_RACER_POLICY.is_file() and racer.obs_keys == ("rangefinder", "state", "opponents")
+    assert racer.env_overrides["control_hz"] == 10
+    assert isinstance(racer, EnsemblePolicy) and racer.reduce == "medoid" and len(racer.members) == 6
+    rows, _ = run_cell(racer, "oval", "asphalt", laps=1)  # no opponents: its sectors read free (200 m)
     assert rows[0]["success"] and rows[0]["off_track_events"] == 0
+    pol = racer.members[0]  # one student: its rows batched as one car each

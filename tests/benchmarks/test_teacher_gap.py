@@ -59,13 +59,14 @@ def test_a_race_needs_a_student_that_reads_opponents_and_a_pace_in_range(capsys)
 
 
 def test_an_ensemble_file_is_scored_as_it_drives(tmp_path, capsys):
-    from torcsrl.policies import export_ensemble
+    from torcsrl.policies import export_ensemble, export_member
 
     b = _bench()
     args = ["--track", "oval", "--teacher", "racer_safe:1.5", "--steps", "60"]
-    assert b.main([str(RACER), *args]) == 0
+    member = export_member(RACER, 0, tmp_path / "one.pt")  # the shipped racer is an ensemble: one of its students
+    assert b.main([str(member), *args]) == 0
     one = capsys.readouterr().out
-    ens = export_ensemble([RACER, RACER], tmp_path / "two.pt", reduce="medoid")  # two copies: the racer's own actions
+    ens = export_ensemble([member, member], tmp_path / "two.pt", reduce="medoid")  # two copies: the student's own actions
     assert b.main([str(ens), *args]) == 0
     two = capsys.readouterr().out
     gaps = [re.search(r"mean \|steer gap\| ([0-9.]+), mean \|pedal gap\| ([0-9.]+)", o).groups() for o in (one, two)]
