@@ -12,8 +12,8 @@ import pytest
 import torch
 
 from torcsrl.evaluate import run_cell
-from torcsrl.evaluate.batched import RowActor, run_batch, supports_batch
-from torcsrl.policies import load_policy
+from torcsrl.evaluate.batched import EnsembleRowActor, RowActor, run_batch, supports_batch
+from torcsrl.policies import REFERENCE_CAMERA_POLICY, EnsemblePolicy, load_policy
 from torcsrl.report import ReportConfig, run_report
 
 
@@ -79,6 +79,19 @@ def test_a_stateful_racer_drives_batched_cells_as_one_car_at_a_time():
         rows_a, _ = run_cell(pol, "rallycross", None, d, **kw)
         assert _diff(rows_a, rows_b) == [], d
     assert batched[1][0]["return"] != batched[0][0]["return"]
+
+
+def test_the_shipped_racer_an_ensemble_drives_batched_cells_as_one_car_at_a_time():
+    """reference_racer is a medoid ensemble of six stateful students: each member batched row for row, combined per row."""
+    pol = load_policy("reference_racer")
+    assert isinstance(pol, EnsemblePolicy) and supports_batch(pol) and isinstance(RowActor(pol), EnsembleRowActor)
+    degs = [None, "state.noise@3"]
+    kw = dict(episodes=2, laps=1, seed=5, max_steps=50, env_kwargs={"start": "random"})
+    batched = run_batch(pol, "rallycross", None, degs, max_cars=2, **kw)
+    for d, rows_b in zip(degs, batched):
+        rows_a, _ = run_cell(pol, "rallycross", None, d, **kw)
+        assert _diff(rows_a, rows_b) == [], d
+    assert not supports_batch(load_policy(f"{REFERENCE_CAMERA_POLICY}"))  # pixels: one car at a time
 
 
 @pytest.mark.parametrize("start,max_cars", [("grid", None), ("random", None), ("random", 4)])

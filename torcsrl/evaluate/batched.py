@@ -67,7 +67,7 @@ from torcsrl.evaluate.protocol import (Degradation, EpisodeBook, default_max_ste
                                        seed_for)
 from torcsrl.policies import Policy
 
-__all__ = ["supports_batch", "row_linear", "RowActor", "run_batch", "CARS_PER_WORLD"]
+__all__ = ["supports_batch", "row_linear", "RowActor", "EnsembleRowActor", "run_batch", "CARS_PER_WORLD"]
 
 #: Cars per pybullet world of a batch (``RaceCore(cars_per_world=...)``): the cars of a grid drive the same line, and in
 #: one world the collision broadphase's cost of their overlapping boxes grows with the square of their number.
@@ -105,8 +105,10 @@ def supports_batch(policy: Policy) -> bool:
     (:class:`~torcsrl.nets.DeterministicActor`, with or without a grip head) on vector observations only, a
     ``state_history`` included (:class:`RowActor` keeps each row's readings and restarts them with its group)."""
     from torcsrl.nets import DeterministicActor
-    from torcsrl.policies import CheckpointPolicy
+    from torcsrl.policies import CheckpointPolicy, EnsemblePolicy
 
+    if isinstance(policy, EnsemblePolicy):  # an ensemble of such actors: each member batched, combined row for row
+        return type(policy).__call__ is EnsemblePolicy.__call__ and all(supports_batch(m) for m in policy.members)
     return (isinstance(policy, CheckpointPolicy) and type(policy.actor) is DeterministicActor
             and not policy.actor.encoder.img_keys and not policy._stacked and type(policy).__call__ is CheckpointPolicy.__call__)
 
@@ -126,7 +128,15 @@ class RowActor:
     """A checkpoint policy's deterministic actor on a batch, row for row equal to the one-car policy: its observation
     scaling, its state history (each row's last ``state_history`` readings, restarted by :meth:`forget` as a one-car
     policy's by ``reset``), its grip head and input selections (:meth:`DeterministicActor.act`), every linear layer one
-    row at a time (:func:`row_linear`)."""
+    row at a time (:func:`row_linear`). An :class:`~torcsrl.policies.EnsemblePolicy` of such policies gives a
+    :class:`EnsembleRowActor` (``RowActor(ensemble)``)."""
+
+    def __new__(cls, policy: Policy):
+        from torcsrl.policies import EnsemblePolicy
+
+        if cls is RowActor and isinstance(policy, EnsemblePolicy):
+            return EnsembleRowActor(policy)
+        return super().__new__(cls)
 
     def __init__(self, policy: Policy) -> None:
         if not supports_batch(policy):
@@ -177,6 +187,27 @@ class RowActor:
             x = torch.cat([x, grip.to(x.dtype)], -1)
         a = mlp(act._linears(), x, True)
         return a if act._unit else act.a_mid + act.a_half * a
+
+
+class EnsembleRowActor:
+    """An ensemble on a batch: one :class:`RowActor` per member (each row its own history), the members' actions
+    combined by the ensemble's reduce (:meth:`EnsemblePolicy.combine`) — row for row what the one-car ensemble does."""
+
+    def __init__(self, policy: Policy) -> None:
+        if not supports_batch(policy):
+            raise ValueError(f"policy {policy.name!r} ({type(policy).__name__}) cannot drive a batch")
+        self.policy, self.reduce = policy, policy.reduce
+        self.members = [RowActor(m) for m in policy.members]
+
+    def forget(self, rows: Sequence[int]) -> None:
+        for m in self.members:
+            m.forget(rows)
+
+    @torch.no_grad()
+    def __call__(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        from torcsrl.policies import EnsemblePolicy
+
+        return EnsemblePolicy.combine(torch.stack([m(obs) for m in self.members]), self.reduce)
 
 
 @torch.no_grad()
