@@ -152,6 +152,11 @@ def stop_pool(ex, timeout_s: float = 10.0) -> None:
         if p.is_alive():
             p.kill()
             p.join(timeout_s)
+    # the pool's manager thread notices its workers gone and closes its wake-up pipe; wait for it, or the interpreter's
+    # exit hook (concurrent.futures.process._python_exit) can write to that pipe as it closes (EBADF, a traceback)
+    manager = getattr(ex, "_executor_manager_thread", None)
+    if manager is not None and manager.is_alive():
+        manager.join(timeout_s)
 
 
 # ---------------------------------------------------------------------------------------------
