@@ -51,8 +51,6 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     if a.opponents < 0:
         ap.error(f"--opponents must be >= 0, got {a.opponents}")
-    if not 0.0 < a.pace <= 1.5:
-        ap.error(f"--pace must be in (0, 1.5] (a fraction of the expert's speed profile), got {a.pace}")
     if not 0.0 < a.near_m <= 200.0:
         ap.error(f"--near-m must be in (0, 200] m (the opponents sensor's range), got {a.near_m}")
     torch.set_num_threads(1)
@@ -60,6 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     from torchrl.envs.utils import step_mdp
 
     from torcsrl.demos import make_demo_env, make_teacher
+    from torcsrl.envs.traffic import TrafficError, TrafficSpec
     from torcsrl.evaluate.race import race_traffic
     from torcsrl.policies import CheckpointPolicy, EnsemblePolicy, EpisodeContext, PolicyError, load_policy
 
@@ -79,6 +78,10 @@ def main(argv: list[str] | None = None) -> int:
         if "opponents" not in pol.obs_keys:
             ap.error(f"--opponents needs a student that reads the opponents sensor; {a.checkpoint} reads {list(pol.obs_keys)}")
         cfg.env.traffic = race_traffic(a.opponents, a.pace)
+        try:  # the env's own checks (pace range, grid slots): one line
+            TrafficSpec.from_config(cfg.env.traffic)
+        except TrafficError as err:
+            ap.error(str(err))
     if cfg.get("demos") is not None:  # the episode cap is --steps (the run's demos.episode_steps would cut a race short)
         cfg.demos.episode_steps = int(a.steps) + 1
     env = make_demo_env(cfg, a.seed)

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from torcsrl.evaluate import run_cell
-from torcsrl.evaluate.batched import EnsembleRowActor, RowActor, run_batch, supports_batch
+from torcsrl.evaluate.batched import EnsembleRowActor, RowActor, row_actor, run_batch, supports_batch
 from torcsrl.policies import REFERENCE_CAMERA_POLICY, EnsemblePolicy, load_policy
 from torcsrl.report import ReportConfig, run_report
 
@@ -84,7 +84,7 @@ def test_a_stateful_racer_drives_batched_cells_as_one_car_at_a_time():
 def test_the_shipped_racer_an_ensemble_drives_batched_cells_as_one_car_at_a_time():
     """reference_racer is a medoid ensemble of six stateful students: each member batched row for row, combined per row."""
     pol = load_policy("reference_racer")
-    assert isinstance(pol, EnsemblePolicy) and supports_batch(pol) and isinstance(RowActor(pol), EnsembleRowActor)
+    assert isinstance(pol, EnsemblePolicy) and supports_batch(pol) and isinstance(row_actor(pol), EnsembleRowActor)
     degs = [None, "state.noise@3"]
     kw = dict(episodes=2, laps=1, seed=5, max_steps=50, env_kwargs={"start": "random"})
     batched = run_batch(pol, "rallycross", None, degs, max_cars=2, **kw)

@@ -47,7 +47,8 @@ def test_a_racer_and_its_teacher_in_a_race_split_near_a_car_and_clear(capsys):
 def test_a_race_needs_a_student_that_reads_opponents_and_a_pace_in_range(capsys):
     b = _bench()
     for argv, words in (([str(STUDENT), "--opponents", "3"], "needs a student that reads the opponents sensor"),
-                        ([str(RACER), "--opponents", "3", "--pace", "2"], "--pace must be in (0, 1.5]"),
+                        ([str(RACER), "--opponents", "3", "--pace", "2"], "pace must be a number in [0.05, 1.5]"),
+                        ([str(RACER), "--opponents", "30"], "do not fit the grid of 12 slots"),
                         ([str(RACER), "--opponents", "-1"], "--opponents must be >= 0")):
         try:
             b.main(argv)

@@ -67,7 +67,7 @@ from torcsrl.evaluate.protocol import (Degradation, EpisodeBook, default_max_ste
                                        seed_for)
 from torcsrl.policies import Policy
 
-__all__ = ["supports_batch", "row_linear", "RowActor", "EnsembleRowActor", "run_batch", "CARS_PER_WORLD"]
+__all__ = ["supports_batch", "row_linear", "RowActor", "EnsembleRowActor", "row_actor", "run_batch", "CARS_PER_WORLD"]
 
 #: Cars per pybullet world of a batch (``RaceCore(cars_per_world=...)``): the cars of a grid drive the same line, and in
 #: one world the collision broadphase's cost of their overlapping boxes grows with the square of their number.
@@ -128,15 +128,7 @@ class RowActor:
     """A checkpoint policy's deterministic actor on a batch, row for row equal to the one-car policy: its observation
     scaling, its state history (each row's last ``state_history`` readings, restarted by :meth:`forget` as a one-car
     policy's by ``reset``), its grip head and input selections (:meth:`DeterministicActor.act`), every linear layer one
-    row at a time (:func:`row_linear`). An :class:`~torcsrl.policies.EnsemblePolicy` of such policies gives a
-    :class:`EnsembleRowActor` (``RowActor(ensemble)``)."""
-
-    def __new__(cls, policy: Policy):
-        from torcsrl.policies import EnsemblePolicy
-
-        if cls is RowActor and isinstance(policy, EnsemblePolicy):
-            return EnsembleRowActor(policy)
-        return super().__new__(cls)
+    row at a time (:func:`row_linear`). :func:`row_actor` picks it or, for an ensemble, :class:`EnsembleRowActor`."""
 
     def __init__(self, policy: Policy) -> None:
         if not supports_batch(policy):
@@ -210,6 +202,13 @@ class EnsembleRowActor:
         return EnsemblePolicy.combine(torch.stack([m(obs) for m in self.members]), self.reduce)
 
 
+def row_actor(policy: Policy) -> RowActor | EnsembleRowActor:
+    """The batched actor of ``policy``: :class:`EnsembleRowActor` for an ensemble, else :class:`RowActor`."""
+    from torcsrl.policies import EnsemblePolicy
+
+    return EnsembleRowActor(policy) if isinstance(policy, EnsemblePolicy) else RowActor(policy)
+
+
 @torch.no_grad()
 def run_batch(policy: Policy, track: str, surface: str | None, degradations: Sequence[Any], *, episodes: int = 1,
               laps: int = 1, seed: int = 0, max_steps: int | None = None, env_kwargs: Mapping[str, Any] | None = None,
@@ -255,7 +254,7 @@ def run_batch(policy: Policy, track: str, surface: str | None, degradations: Seq
         core.scalar_locate_max_cars = n  # every car located as a one-car env locates it (the same numbers)
         env_seeds = [seed_for(seed, "env", track, surface_name, e) for e in range(E)]
         per_car = int(core.start == "random") + int(core.spawn_jitter[0] != 0) + int(core.spawn_jitter[1] != 0)
-        actor = RowActor(policy)
+        actor = row_actor(policy)
         empty = TensorDict({}, batch_size=[E])
         spans = [slice(g * E, (g + 1) * E) for g in range(groups)]
         queue = deque(range(len(degs)))
