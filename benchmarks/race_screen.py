@@ -9,7 +9,8 @@ seed range), ``--episodes`` races a track, each opponent's pace drawn per race f
 the issue's 85 %, so that every race is its own scenario — at one pace the races of a track come from at most K + 1
 grid slots; the ``scenarios`` column counts the distinct ones), each track on its own surface (the training set's:
 asphalt) or on each of ``--surfaces``. It prints, per policy, races finished, wins,
-collisions a race, scenarios and whether it is eligible: ``--min-finished`` / ``--min-wins`` of the races (0.75 / 0.5)
+collisions a race, how they spread (the races without a contact, the most in one race: a mean of 1.04 can be one
+pile-up), scenarios and whether it is eligible: ``--min-finished`` / ``--min-wins`` of the races (0.75 / 0.5)
 and at most ``--max-collisions`` a race (1.0) — the issue's two race goals on training tracks, and finishing. This is
 the race screen the shipped racers were chosen on (2026-11-27, ``torcsrl/assets/reference_racer.md``); pair it with
 ``python benchmarks/generalisation.py --screen --laps 10 --surfaces asphalt dirt`` (solo, no forgetting).
@@ -65,8 +66,9 @@ def heldout_tracks(names: list[str]) -> list[str]:
 def screen(policies: list[str], tracks: list[str], *, episodes: int = 3, pace: tuple[float, float] = (0.83, 0.87),
            laps: int = 5, opponents: int = 3, seed: int = 0, workers: int = 1, out: str | None = None,
            surfaces: list[str] | None = None) -> list[dict]:
-    """One summary per policy: ``{"policy", "races", "finished", "wins", "collisions_per_race", "scenarios", "wall_s",
-    "by_surface"}``; ``by_surface``: the same counts for each surface raced (``{surface: {"races", "finished", "wins",
+    """One summary per policy: ``{"policy", "races", "finished", "wins", "collisions_per_race", "contact_free",
+    "most_collisions", "scenarios", "wall_s", "by_surface"}`` (how the collisions spread: :func:`race_summary`);
+    ``by_surface``: the same counts for each surface raced (``{surface: {"races", "finished", "wins",
     "collisions_per_race"}}``). ``surfaces``: race every track on each of them (None: each track on its own surface)."""
     from torcsrl.evaluate.protocol import EvalError, validate_grid
     from torcsrl.evaluate.race import evaluate_race, race_summary
@@ -88,7 +90,8 @@ def screen(policies: list[str], tracks: list[str], *, episodes: int = 3, pace: t
         tot = res["summary"][-1]  # the race table's "all" row (its only row for one track): torcsrl.evaluate.race.race_summary
         raced = dict.fromkeys(r["surface"] for r in res["episodes"])  # in the order raced
         by_surface = {s: race_summary([r for r in res["episodes"] if r["surface"] == s]) for s in raced}
-        rows.append({"policy": str(spec), **{k: tot[k] for k in ("races", "finished", "wins", "collisions_per_race", "scenarios")},
+        rows.append({"policy": str(spec), **{k: tot[k] for k in ("races", "finished", "wins", "collisions_per_race", "contact_free",
+                                                                  "most_collisions", "scenarios")},
                      "wall_s": time.perf_counter() - t0, "race_rows": [_race_key(r) for r in res["episodes"]],
                      "by_surface": {s: {k: v[k] for k in ("races", "finished", "wins", "collisions_per_race")} for s, v in by_surface.items()}})
     return rows
@@ -227,12 +230,12 @@ def main(argv: list[str] | None = None) -> int:
     on = f" on {' '.join(a.surfaces)}" if a.surfaces else ""
     print(f"race screen: {' '.join(a.tracks)}{on}, {a.laps} laps against {a.opponents} experts at pace "
           f"[{a.pace[0]:g}, {a.pace[1]:g}], {a.episodes} races a track, seed {a.seed}")
-    print("| policy | races | finished | wins | collisions / race | scenarios | eligible | wall [s] |")
-    print("|---|---:|---:|---:|---:|---:|---|---:|")
+    print("| policy | races | finished | wins | collisions / race | contact-free races | most in a race | scenarios | eligible | wall [s] |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---|---:|")
     for r in rows:
         ok = eligible(r, a.min_finished, a.min_wins, a.max_collisions, weights)
         print(f"| {r['policy']} | {r['races']} | {r['finished']} | {r['wins']} | {r['collisions_per_race']:.2f} | "
-              f"{r['scenarios']} | {'yes' if ok else 'no'} | {r['wall_s']:.0f} |")
+              f"{r['contact_free']} | {r['most_collisions']} | {r['scenarios']} | {'yes' if ok else 'no'} | {r['wall_s']:.0f} |")
     mix = f" (surface-weighted: {', '.join(f'{k} {v:g}' for k, v in weights.items())})" if weights else ""
     print(f"eligible{mix}: finished >= {a.min_finished:g}, wins >= {a.min_wins:g} of the races, <= {a.max_collisions:g} "
           "collisions a race")

@@ -48,7 +48,7 @@ def test_row_actor_equals_the_one_car_policy_row_for_row():
 def test_row_actor_keeps_each_rows_history_and_grip_estimate_as_the_one_car_policy():
     """The shipped racer keeps 3 s of its state (state_history=30), estimates the grip from it and drives on the newest
     1 s: a batch of 5 rows, two of which restart mid-way, gives each row the actions of its own one-car policy."""
-    pol = load_policy("reference_racer").members[0]  # the shipped racer is a medoid ensemble of six such students
+    pol = load_policy("reference_racer").members[0]  # the shipped racer is a medoid ensemble of four such students
     assert pol.state_history > 1 and pol.actor.grip_head is not None and pol.actor._selects and supports_batch(pol)
     g = torch.Generator().manual_seed(0)
     batch, ones = RowActor(pol), [load_policy("reference_racer").members[0] for _ in range(5)]
@@ -82,7 +82,7 @@ def test_a_stateful_racer_drives_batched_cells_as_one_car_at_a_time():
 
 
 def test_the_shipped_racer_an_ensemble_drives_batched_cells_as_one_car_at_a_time():
-    """reference_racer is a medoid ensemble of six stateful students: each member batched row for row, combined per row."""
+    """reference_racer is a medoid ensemble of four stateful students: each member batched row for row, combined per row."""
     pol = load_policy("reference_racer")
     assert isinstance(pol, EnsemblePolicy) and supports_batch(pol) and isinstance(row_actor(pol), EnsembleRowActor)
     degs = [None, "state.noise@3"]

@@ -38,8 +38,21 @@ def test_race_summary_counts_dnf_and_table_rows():
              "damage": 2.5, "gap_ahead_m": 9.0, "lead_m": -30.0}]
     s = race_summary(rows)
     assert (s["finished"], s["wins"], s["mean_position"], s["collisions_per_race"]) == (1, 0, 2.0, 2.0)
+    assert (s["contact_free"], s["most_collisions"]) == (0, 3)
     header, body = race_table([s])
-    assert header == list(RACE_COLUMNS) and body[0][3:6] == ["1/2", "0/2", "2.00"]
+    assert header == list(RACE_COLUMNS) and body[0][3:9] == ["1/2", "0/2", "2.00", "2.00", "0/2", "3"]
+
+
+def test_the_race_summary_tells_a_pile_up_from_contacts_spread_over_the_races():
+    """25 contacts in 24 races: 12 in one and 13 over the rest, or about one a race — the same mean, told apart by the
+    contact-free races and the most in one race."""
+    row = {"track": "t", "surface": "asphalt", "opponents": 3, "position": 1, "win": True, "overtakes": 0, "damage": 0.0,
+           "gap_ahead_m": 0.0, "lead_m": 5.0}
+    pile_up = [{**row, "collisions": c} for c in [12] + [1] * 13 + [0] * 10]
+    spread = [{**row, "collisions": c} for c in [2] + [1] * 23]
+    a, b = race_summary(pile_up), race_summary(spread)
+    assert a["collisions_per_race"] == b["collisions_per_race"] == 25 / 24
+    assert (a["contact_free"], a["most_collisions"]) == (10, 12) and (b["contact_free"], b["most_collisions"]) == (0, 2)
 
 
 def test_races_from_the_same_start_are_the_same_race_and_the_table_counts_scenarios():

@@ -323,7 +323,7 @@ def test_the_shipped_racer_reads_the_race_sensors_and_laps_alone():
     racer = load_policy("reference_racer")
     assert REFERENCE_RACER_POLICY.is_file() and racer.obs_keys == ("rangefinder", "state", "opponents")
     assert racer.env_overrides["control_hz"] == 10
-    assert isinstance(racer, EnsemblePolicy) and racer.reduce == "medoid" and len(racer.members) == 6
+    assert isinstance(racer, EnsemblePolicy) and racer.reduce == "medoid" and len(racer.members) == 4
     rows, _ = run_cell(racer, "oval", "asphalt", laps=1)  # no opponents: its sectors read free (200 m)
     assert rows[0]["success"] and rows[0]["off_track_events"] == 0
     pol = racer.members[0]  # one student: its rows batched as one car each

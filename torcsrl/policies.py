@@ -13,7 +13,7 @@ spec                          policy
 ``reference``                 the shipped reference driver, :data:`REFERENCE_POLICY`
 ``reference-td3``             the shipped RL (TD3) driver, :data:`REFERENCE_RL_POLICY`
 ``reference_racer``           the shipped racing driver (rangefinder + state + opponents, asphalt and
-                              dirt; a medoid ensemble of six students), :data:`REFERENCE_RACER_POLICY`
+                              dirt; a medoid ensemble of four students), :data:`REFERENCE_RACER_POLICY`
 ``reference_camera``          the shipped camera-only driver (hood camera + telemetry),
                               :data:`REFERENCE_CAMERA_POLICY` (also ``reference-camera``)
 ``expert``                    the scripted expert (:mod:`torcsrl.envs.expert`: pure pursuit on

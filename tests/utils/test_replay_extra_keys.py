@@ -40,3 +40,24 @@ def test_without_extra_keys_the_layout_is_unchanged():
     rb.extend(step)
     rb.extend(_step(2).exclude("expert_action"))
     assert set(rb.sample().keys()) == {"obs", "action", "index", "next"}
+
+
+def test_a_dump_is_a_function_of_the_steps_written_not_of_uninitialised_memory(tmp_path):
+    """The row after the newest step holds its next observation only; the rest of that row was never written (its
+    storage is torch.empty). Two buffers fed the same steps write the same files whatever that memory held (seen: the
+    same seed's demonstrations differed in one stray action value, so their checksums did)."""
+    import json
+
+    sums = []
+    for k, junk in enumerate((2.0, -2.0)):
+        rb = ReplayBuffer(100, 16, ["obs"], extra_keys=["expert_action"])
+        for t in range(20):
+            rb.extend(_step(t, done=t % 7 == 6))
+        rb._rows["action"][20] = junk  # what uninitialised memory may hold
+        rb._rows["reward"][20] = junk
+        rb.dumps(tmp_path / f"d{k}")
+        sums.append(json.loads((tmp_path / f"d{k}" / "meta.json").read_text())["checksums"])
+        back = ReplayBuffer(100, 16, ["obs"], extra_keys=["expert_action"])
+        back.loads(tmp_path / f"d{k}")
+        assert torch.equal(back[:]["action"], rb[:]["action"])  # the steps written are untouched
+    assert sums[0] == sums[1]

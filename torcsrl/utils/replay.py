@@ -394,7 +394,12 @@ class ReplayBuffer:
         path = Path(path)
         path.mkdir(parents=True, exist_ok=True)
         if self._rows is not None:
-            self._rows[: min(self.written + self.streams, self.rows)].memmap(prefix=str(path / "rows"), copy_existing=True)
+            end = min(self.written + self.streams, self.rows)
+            if self.written < end:  # the rows after the newest step (not wrapped yet) hold its next observations only: their
+                for dst in self._leaves:  # other columns were never written (torch.empty); zeros keep a dump a function of
+                    dst[self.written:end].zero_()  # the steps written (the same seed writes the same files)
+                self._final[self.written:end] = -1
+            self._rows[:end].memmap(prefix=str(path / "rows"), copy_existing=True)
             if self.finals_written:
                 self._finals[: min(self.finals_written, self.rows)].memmap(prefix=str(path / "finals"), copy_existing=True)
         if self.priorities is not None:
