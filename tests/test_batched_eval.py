@@ -10,7 +10,9 @@ import math
 
 import pytest
 import torch
+from tensordict import TensorDict
 
+from torcsrl.envs import make_env
 from torcsrl.evaluate import run_cell
 from torcsrl.evaluate.batched import EnsembleRowActor, RowActor, row_actor, run_batch, supports_batch
 from torcsrl.policies import REFERENCE_CAMERA_POLICY, EnsemblePolicy, load_policy
@@ -92,6 +94,31 @@ def test_the_shipped_racer_an_ensemble_drives_batched_cells_as_one_car_at_a_time
         rows_a, _ = run_cell(pol, "rallycross", None, d, **kw)
         assert _diff(rows_a, rows_b) == [], d
     assert not supports_batch(load_policy(f"{REFERENCE_CAMERA_POLICY}"))  # pixels: one car at a time
+
+
+def test_a_guarded_ensemble_guards_each_row_by_its_own_opponents_as_the_one_car_ensemble(tmp_path):
+    """``@guarded``: each row's pedal is the most cautious member's only where that row sees a car close ahead."""
+    from torcsrl.policies import REFERENCE_RACER_POLICY, export_member
+
+    spec = "+".join(str(export_member(REFERENCE_RACER_POLICY, i, tmp_path / f"m{i}.pt")) for i in range(4)) + "@guarded:30"
+    pol = load_policy(spec)
+    env = make_env(track="oval", sensors=pol.env_overrides["sensors"], control_hz=10, substeps=20)
+    try:  # 6 rows of one real observation (the shipped racer 4 s into a lap alone), each with its own opponents
+        td = env.reset()
+        racer = load_policy("reference_racer")
+        for _ in range(40):
+            td = env.step(racer(td))["next"]
+    finally:
+        env.close()
+    obs = {k: td[k].expand(6, *td[k].shape).clone() for k in pol.obs_keys}
+    obs["opponents"][:] = 200.0
+    obs["opponents"][3:, 18] = torch.tensor([12.0, 16.0, 45.0])  # rows 3-4: a car close ahead; row 5: 45 m ahead
+    rows = row_actor(pol)(obs)
+    one = torch.stack([load_policy(spec)(TensorDict({k: v[i] for k, v in obs.items()}, []))["action"] for i in range(6)])
+    assert torch.equal(rows, one)
+    assert pol.near_rows(obs).tolist() == [False, False, False, True, True, False]
+    medoid = row_actor(load_policy(spec.replace("@guarded:30", "@medoid")))(obs)
+    assert torch.equal(rows[[0, 1, 2, 5]], medoid[[0, 1, 2, 5]]) and not torch.equal(rows[3:5], medoid[3:5])
 
 
 @pytest.mark.parametrize("start,max_cars", [("grid", None), ("random", None), ("random", 4)])

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 import torch
 
@@ -76,6 +78,55 @@ def test_the_medoid_reduce_takes_one_members_command_where_the_mean_is_neither()
         EnsemblePolicy.combine(rows, "loudest")
 
 
+def test_the_guarded_reduce_takes_the_most_cautious_pedal_only_where_a_car_is_close_ahead():
+    acts = torch.tensor([[[0.10, 0.9], [0.5, 0.2]], [[0.20, 0.5], [0.4, -0.3]], [[0.30, 0.1], [0.45, 0.0]]])  # [3 members, 2 rows, A]
+    medoid = EnsemblePolicy.combine(acts, "medoid")
+    out = EnsemblePolicy.combine(acts, "guarded:30", torch.tensor([True, False]))
+    torch.testing.assert_close(out[1], medoid[1])  # no car close ahead: the medoid
+    torch.testing.assert_close(out[0], torch.tensor([0.20, 0.1]))  # the medoid's steering, the least throttle
+    sep = torch.tensor([[[0.1, 0.8, 0.0]], [[0.0, 0.2, 0.6]], [[-0.1, 0.5, 0.1]]])  # action_mode=separate: steer, throttle, brake
+    torch.testing.assert_close(EnsemblePolicy.combine(sep, "guarded:30", torch.tensor([True])), torch.tensor([[-0.1, 0.2, 0.6]]))  # medoid: member 3
+    with pytest.raises(PolicyError, match="needs the rows with a car close ahead"):
+        EnsemblePolicy.combine(acts, "guarded:30")
+
+
+def test_a_guarded_racer_is_the_medoid_alone_and_brakes_with_its_most_cautious_student_behind_a_car(tmp_path):
+    """The shipped racer's four students: with every sector free (alone) or a car only behind or far ahead the guarded
+    ensemble drives exactly as the medoid; with a car 16 m ahead its pedal is the least of the students'."""
+    members = [str(export_member(REFERENCE_RACER_POLICY, i, tmp_path / f"m{i}.pt")) for i in range(4)]
+    spec = "+".join(members)
+    guarded = load_policy(f"{spec}@guarded:30")
+    assert guarded.reduce == "guarded:30" and guarded.guard_m == 30.0 and load_policy(f"{spec}@guarded").guard_m == EnsemblePolicy.GUARD_M
+    racer = load_policy("reference_racer")
+    env = make_env(track="oval", sensors=racer.env_overrides["sensors"], control_hz=10, substeps=20)
+    try:  # the observation of the racer 4 s into a lap of the oval alone (~40 m/s)
+        td = env.reset()
+        for _ in range(40):
+            td = env.step(racer(td))["next"]
+        base = td.select(*racer.obs_keys).clone()
+    finally:
+        env.close()
+
+    def scene(**cars):  # sector index -> distance [m]; every other sector free (200 m)
+        td = base.clone()
+        td["opponents"] = torch.full((36,), 200.0)
+        for k, d in cars.items():
+            td["opponents"][int(k[1:])] = d
+        return td
+
+    def first_action(pol_spec, td):  # a fresh ensemble: the students keep a history, so each scene starts one
+        return load_policy(pol_spec)(td.clone())["action"]
+
+    for cars in ({}, {"s0": 5.0}, {"s35": 8.0}, {"s17": 45.0}):  # alone; a car right behind (both sides); one 45 m ahead
+        assert torch.equal(first_action(f"{spec}@guarded:30", scene(**cars)), first_action(f"{spec}@medoid", scene(**cars))), cars
+    close = scene(s17=16.0)  # a car 16 m ahead (just left of the heading): two students brake, two do not
+    acts = torch.stack([load_policy(m)(close.clone())["action"] for m in members])
+    out, medoid = first_action(f"{spec}@guarded:30", close), first_action(f"{spec}@medoid", close)
+    assert out[1] == acts[:, 1].min() and out[0] == medoid[0]
+    assert acts[:, 1].min() < medoid[1]  # the students disagree about the pedal here: the guard changes the command
+    assert torch.equal(first_action(f"{spec}@guarded:5", close), medoid)  # a 5-m guard: that car is not close
+
+
 def test_an_ensemble_file_drives_as_its_spec(tmp_path, states):
     out = export_ensemble([A, B], tmp_path / "ens.pt", reduce="cautious")
     pol = load_policy(out)
@@ -111,14 +162,18 @@ def test_an_ensemble_file_drives_as_its_spec(tmp_path, states):
 def test_ensemble_bad_input_fails_in_one_line(tmp_path):
     racer = export_member(REFERENCE_RACER_POLICY, 0, tmp_path / "racer0.pt")  # one student of the shipped racer
     cases = {
-        f"{A}+{B}@loudest": "reduce='loudest' is not known; allowed: mean, median, cautious, medoid",
+        f"{A}+{B}@loudest": "reduce='loudest' is not known; allowed: mean, median, cautious, medoid, guarded[:<m>]",
+        f"{A}+{B}@guarded": "reads the opponents sensor, which its members do not",  # the DAgger and TD3 references
+        f"{racer}+{racer}@guarded:-5": "the guard distance must be positive [m], got -5",
+        f"{racer}+{racer}@guarded:near": "the guard distance must be a number of metres",
+        f"{racer}+{racer}@medoid:30": "reduce='medoid:30' is not known",
         f"{A}+{racer}": "must read the same observations",  # rangefinder + state against + opponents
-        f"{A}+{REFERENCE_RACER_POLICY}": "is itself an ensemble",  # the shipped racer is a 6-seed ensemble
+        f"{A}+{REFERENCE_RACER_POLICY}": "is itself an ensemble",  # the shipped racer is a 4-seed ensemble
         f"{A}+{REFERENCE_CAMERA_POLICY}": "is itself an ensemble",  # the shipped camera driver is a 4-seed ensemble
         f"{A}+{tmp_path / 'nothing.pt'}": "neither a checkpoint file that exists",
     }
     for spec, msg in cases.items():
-        with pytest.raises(PolicyError, match=msg.replace("(", r"\(").replace(")", r"\)")) as err:
+        with pytest.raises(PolicyError, match=re.escape(msg)) as err:
             load_policy(spec)
         assert "\n" not in str(err.value), spec
     with pytest.raises(PolicyError, match="at least 2 checkpoints"):
@@ -239,12 +294,31 @@ def test_racer_safe_takes_an_asphalt_braking_rate_and_a_rate_for_a_fight():
     assert wide.race.fight_m == 150.0 and pedal(wide, far) == pedal(load_policy("racer_safe:1.27"), far) > 0.0
     assert known_teacher("racer_safe:1.27:8:9") and make_teacher("racer_safe:1.27:8:9").race.fight_decel_per_mu == 9.0
     for bad, msg in (("racer_safe:1.5:0", r"in \(0, 12\]"), ("racer_safe:1.5:8:13", r"in \(0, 12\]"),
-                     ("racer_safe:1.5:8:9:60:1", "at most four"), ("racer_safe:1.5:8:9:250", r"in \(0, 200\]"),
+                     ("racer_safe:1.5:8:9:60:5:1", "at most five"), ("racer_safe:1.5:8:9:250", r"in \(0, 200\]"),
+                     ("racer_safe:1.5:8:9:60:40", r"room kept past a car passed must be in \[0, 30\]"),
                      ("racer_safe:1.5:fast", "must be a number")):
         with pytest.raises(PolicyError, match=msg):
             load_policy(bad)
         with pytest.raises(DemoError, match=msg):
             make_teacher(bad)
+
+
+def test_a_racer_with_room_to_clear_holds_its_passing_line_past_the_car_it_passed():
+    """``racer_safe:...:<clear m>``: the passing line is held until the car passed is ``clear_m`` behind, then faded
+    over ``rear_m`` as before (default 0: the fade starts as the car is level)."""
+    import math
+
+    now, clear = load_policy("racer_safe:1.27:8:9"), load_policy("racer_safe:1.27:8:9:60:6")
+    assert now.race.clear_m == 0.0 and clear.race.clear_m == 6.0 and now.fingerprint != clear.fingerprint
+    r, st = _straight_road(speed_kmh=72.0)
+    d, phi = 5.59, math.radians(175.0 - 10.0 * 33)  # sector 33: a car ~5 m behind, 2.4 m right (just passed on its left)
+    x, y = d * math.cos(phi), d * math.sin(phi)
+    aim = y / 6.0 + clear.race.pass_gap_m / 6.0  # pass_gap beside it (half-width 6 m)
+    t_now, _ = now.traffic(r, st, _sectors(s33=d))
+    t_clear, _ = clear.traffic(r, st, _sectors(s33=d))
+    assert t_clear == pytest.approx(aim) and t_now == pytest.approx(aim * (x + now.race.rear_m) / now.race.rear_m) and t_now < t_clear
+    far = 20.0 / abs(math.cos(math.radians(175.0 - 350.0)))  # sector 35: 20 m behind, 1.7 m right: beyond rear_m
+    assert now.traffic(r, st, _sectors(s35=far))[0] == 0.0 and clear.traffic(r, st, _sectors(s35=far))[0] > 0.0  # still fading
 
 
 def test_clean_racer_widens_its_following_corridor_near_bends_and_hold_lane_keeps_its_lane():

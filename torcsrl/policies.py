@@ -43,8 +43,10 @@ spec                          policy
 ``random``                    uniform random actions in [-1, 1], seeded per episode (R_random)
 ``a.pt+b.pt[+...][@reduce]``  :class:`EnsemblePolicy`: the checkpoints drive as one, their actions
                               combined by ``mean`` (default), ``median``, ``cautious`` (mean
-                              steering, the most cautious pedal) or ``medoid`` (per row one
-                              member's whole action, nearest the median); an ensemble file written by
+                              steering, the most cautious pedal), ``medoid`` (per row one
+                              member's whole action, nearest the median) or ``guarded[:<m>]``
+                              (the medoid, with the most cautious pedal while a car is within
+                              m metres ahead); an ensemble file written by
                               :func:`export_ensemble` loads the same way
 ============================  =================================================================
 
@@ -66,6 +68,7 @@ import hashlib
 import inspect
 import math
 import sys
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
@@ -111,7 +114,7 @@ REFERENCE_CAMERA_POLICY = Path(__file__).resolve().parent / "assets" / "referenc
 REFERENCE_RACER_POLICY = Path(__file__).resolve().parent / "assets" / "reference_racer.pt"
 #: Names of the built-in policies (anything else is a checkpoint path).
 BUILTIN_POLICIES = ("expert", "expert_centre", "heuristic", "sensor", "sensor_grip", "sensor_fast", "sensor_sight[:<metres>]",
-                    "sensor_fast_sight[:<metres>]", "racer", "racer_bold", "racer_safe[:<gamma>[:<decel>[:<fight decel>[:<fight m>]]]]", "racer_clean[:<gamma>[:<decel>[:<fight decel>[:<fight m>]]]]", "random", "reference", "reference-td3", "reference_camera", "reference_racer")
+                    "sensor_fast_sight[:<metres>]", "racer", "racer_bold", "racer_safe[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>]]]]]", "racer_clean[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>]]]]]", "random", "reference", "reference-td3", "reference_camera", "reference_racer")
 
 
 class PolicyError(ValueError):
@@ -400,19 +403,27 @@ class EnsemblePolicy(Policy):
     - ``medoid``: one member's whole action, per row the one nearest (L1) the per-dimension median (ties: the first
       member). Every command is some member's own: where members pass a car on different sides the mean steers
       between them, into it (racers: the mean of six seeds collided 1.46 times a race on the asphalt training races,
-      more than any member, 0.62-1.38).
+      more than any member, 0.62-1.38);
+    - ``guarded[:<m>]`` (racers; default :attr:`GUARD_M` m): the ``medoid``, but while the ``opponents`` sensor shows
+      a car ahead (a sector whose centre lies within 90 degrees of the heading: SCR sectors 9-26) closer than ``m``
+      metres, the pedal is the most cautious member's (as ``cautious``; the steering stays the medoid's). Alone (every
+      sector free, 200 m) it drives exactly as ``medoid``; behind a car, where the members disagree about when to brake,
+      it brakes with the earliest.
 
-    Specs: ``a.pt+b.pt[+...][@mean|@median|@cautious|@medoid]`` (default mean), or an ensemble file written by
-    :func:`export_ensemble` (``python -m torcsrl.policies ensemble OUT A B ... --reduce cautious``)."""
+    Specs: ``a.pt+b.pt[+...][@mean|@median|@cautious|@medoid|@guarded[:<m>]]`` (default mean), or an ensemble file
+    written by :func:`export_ensemble` (``python -m torcsrl.policies ensemble OUT A B ... --reduce cautious``)."""
 
-    REDUCE = ("mean", "median", "cautious", "medoid")
+    REDUCE = ("mean", "median", "cautious", "medoid", "guarded")
+    #: ``guarded``'s default distance [m] to a car ahead within which the most cautious member's pedal is taken.
+    GUARD_M = 30.0
+    #: The SCR opponents sectors that look ahead (centre ``175 - 10 k`` degrees within 90 of the heading).
+    AHEAD_SECTORS = slice(9, 27)
 
     def __init__(self, members: list[CheckpointPolicy], reduce: str = "mean", name: str | None = None,
                  spec: str | None = None, fingerprint: str | None = None) -> None:
         if len(members) < 2:
             raise PolicyError(f"an ensemble needs at least 2 checkpoints; got {len(members)}")
-        if reduce not in self.REDUCE:
-            raise PolicyError(f"ensemble reduce={reduce!r} is not known; allowed: {', '.join(self.REDUCE)}")
+        reduce, self.guard_m = self.parse_reduce(reduce)
         first = members[0]
 
         def setting(m: CheckpointPolicy) -> tuple:  # unset (None) camera fields are the defaults: equal to absent ones
@@ -425,6 +436,9 @@ class EnsemblePolicy(Policy):
                                   f"({m._layout_hint()}, {m.env_overrides}) differs from {first.spec} ({first._layout_hint()}, {first.env_overrides})")
         self.members, self.reduce = list(members), reduce
         self.obs_keys, self.obs_shapes, self.action_dim = first.obs_keys, dict(first.obs_shapes), first.action_dim
+        if self.guard_m is not None and "opponents" not in self.obs_keys:
+            raise PolicyError(f"ensemble reduce={reduce!r} reads the opponents sensor, which its members do not "
+                              f"({first._layout_hint()}); allowed for them: {', '.join(r for r in self.REDUCE if r != 'guarded')}")
         self.env_overrides = dict(first.env_overrides)
         self.spec = spec or "+".join(m.spec for m in members) + ("" if reduce == "mean" else f"@{reduce}")
         self.name = name or f"ensemble{len(members)}"
@@ -448,15 +462,49 @@ class EnsemblePolicy(Policy):
         for m in self.members:
             m.forget_rows(rows)
 
+    @classmethod
+    def parse_reduce(cls, reduce: str) -> tuple[str, float | None]:
+        """``(reduce, guard_m)`` from a reduce name (``guarded[:<m>]`` normalised to ``guarded:<m>``, ``guard_m`` None
+        for the others); :class:`PolicyError` (one line) for an unknown name or a distance that is not positive."""
+        name, sep, arg = str(reduce).partition(":")
+        allowed = f"allowed: {', '.join(cls.REDUCE[:-1])}, guarded[:<m>] (a distance in metres, default {cls.GUARD_M:g})"
+        if name not in cls.REDUCE or (sep and name != "guarded"):
+            raise PolicyError(f"ensemble reduce={reduce!r} is not known; {allowed}")
+        if name != "guarded":
+            return name, None
+        try:
+            guard = float(arg) if sep else cls.GUARD_M
+        except ValueError:
+            raise PolicyError(f"ensemble reduce={reduce!r}: the guard distance must be a number of metres; {allowed}") from None
+        if not (math.isfinite(guard) and guard > 0.0):
+            raise PolicyError(f"ensemble reduce={reduce!r}: the guard distance must be positive [m], got {guard:g}")
+        return f"guarded:{guard:g}", guard
+
     @torch.no_grad()
     def __call__(self, td: TensorDictBase) -> TensorDictBase:
         acts = torch.stack([m._act(*(td.get(k) for k in m.obs_keys)) for m in self.members])  # [members, ..., A]
-        td.set("action", self.combine(acts, self.reduce))
+        td.set("action", self.combine(acts, self.reduce, self.near_rows(td)))
         return td
 
+    def near_rows(self, obs: Mapping[str, torch.Tensor] | TensorDictBase) -> torch.Tensor | None:
+        """``guarded``: per row, whether the ``opponents`` sensor shows a car ahead closer than the guard [bool, ...];
+        None for the other reduces."""
+        if self.guard_m is None:
+            return None
+        return obs.get("opponents")[..., self.AHEAD_SECTORS].min(-1).values < self.guard_m
+
     @staticmethod
-    def combine(acts: torch.Tensor, reduce: str) -> torch.Tensor:
-        """The members' actions ``acts [members, ..., A]`` combined by ``reduce`` (see the class docstring)."""
+    def combine(acts: torch.Tensor, reduce: str, near: torch.Tensor | None = None) -> torch.Tensor:
+        """The members' actions ``acts [members, ..., A]`` combined by ``reduce`` (see the class docstring);
+        ``near [...]`` (``guarded``): the rows with a car close ahead, where the most cautious pedal is taken."""
+        if reduce.startswith("guarded"):
+            if near is None:
+                raise PolicyError("ensemble reduce 'guarded' needs the rows with a car close ahead (near); got none")
+            act = EnsemblePolicy.combine(acts, "medoid")
+            safe = EnsemblePolicy.combine(acts, "cautious")
+            near = near.to(torch.bool).unsqueeze(-1)
+            act[..., 1:] = torch.where(near, safe[..., 1:], act[..., 1:])  # the pedal(s); the steering stays the medoid's
+            return act
         if reduce == "mean":
             return acts.mean(0)
         if reduce == "median":
@@ -470,7 +518,8 @@ class EnsemblePolicy(Policy):
             if acts.shape[-1] == 3:
                 act[..., 2] = acts[..., 2].max(0).values  # brake: the most
             return act
-        raise PolicyError(f"ensemble reduce={reduce!r} is not known; allowed: {', '.join(EnsemblePolicy.REDUCE)}")
+        EnsemblePolicy.parse_reduce(reduce)  # raises: not known
+        raise PolicyError(f"ensemble reduce={reduce!r} is not known")  # pragma: no cover (parse_reduce raised)
 
     def describe(self) -> dict[str, Any]:
         return {**super().describe(), "reduce": self.reduce, "members": [m.describe() for m in self.members]}
@@ -917,7 +966,7 @@ class SensorRacer(SensorDriver):
                  tp_max: float = 0.7, lane_m: float = 2.4, length_m: float = 4.5, lift_m: float = 10.0, lift_s: float = 0.8,
                  brake_m: float = 6.0, brake_s: float = 0.5, brake: float = 1.0, pass_radius_m: float = 120.0,
                  bend_m: float = 50.0, bend_lanes: float = 2.5, yield_alongside: bool = True, hold_lane: bool = False,
-                 fight_decel_per_mu: float | None = None, fight_m: float = 60.0,
+                 fight_decel_per_mu: float | None = None, fight_m: float = 60.0, clear_m: float = 0.0,
                  opponents_key: str = "opponents", **kw: Any) -> None:
         from torcsrl.envs.traffic import OPPONENT_RANGE_M, OPPONENT_SECTORS
 
@@ -925,6 +974,8 @@ class SensorRacer(SensorDriver):
             raise ValueError(f"SensorRacer fight_decel_per_mu must be a positive rate [m/s^2 at mu 1], got {fight_decel_per_mu}")
         if not (math.isfinite(float(fight_m)) and 0.0 < float(fight_m) <= OPPONENT_RANGE_M):
             raise ValueError(f"SensorRacer fight_m must be in (0, {OPPONENT_RANGE_M:g}] m (the opponents sensor's range), got {fight_m}")
+        if not (math.isfinite(float(clear_m)) and 0.0 <= float(clear_m) <= 30.0):
+            raise ValueError(f"SensorRacer clear_m must be in [0, 30] m, got {clear_m}")
         super().__init__(**{**SensorDriver.FAST, **kw})
         self.spec = "racer"
         self.obs_keys = ("rangefinder", "state", "opponents")
@@ -936,7 +987,7 @@ class SensorRacer(SensorDriver):
                                     brake=brake, pass_radius_m=pass_radius_m, bend_m=bend_m, bend_lanes=bend_lanes,
                                     yield_alongside=bool(yield_alongside), hold_lane=bool(hold_lane),
                                     fight_decel_per_mu=None if fight_decel_per_mu is None else float(fight_decel_per_mu),
-                                    fight_m=float(fight_m))
+                                    fight_m=float(fight_m), clear_m=float(clear_m))
         self.fingerprint = _code_fingerprint(SensorDriver, SensorRacer, repr(sorted(vars(self.k).items())),
                                              repr(sorted(vars(self.race).items())))
         phi = np.radians(175.0 - 10.0 * np.arange(OPPONENT_SECTORS))
@@ -963,7 +1014,7 @@ class SensorRacer(SensorDriver):
         x, y = opp[seen] * self._cos[seen], opp[seen] * self._sin[seen]
         dy = y - 0.5 * kappa * x * x
         tp_o = tp + dy / w
-        near = (x > -q.rear_m) & (x < q.look_m) & (np.abs(dy) < 2.0 * q.lane_m)
+        near = (x > -(q.rear_m + q.clear_m)) & (x < q.look_m) & (np.abs(dy) < 2.0 * q.lane_m)
         target = 0.0
         if near.any():
             ahead = near & (x > 0.0)
@@ -982,7 +1033,7 @@ class SensorRacer(SensorDriver):
             committed = abs(dy[i]) > 1.5  # already beside it: finish the pass; else start one only where the road is straight
             if aim is not None and (committed or (abs(kappa) * q.pass_radius_m < 1.0 and not bend_near)):
                 xi = float(x[i])
-                wt = (q.look_m - xi) / (q.look_m - q.full_m) if xi >= 0.0 else (xi + q.rear_m) / q.rear_m
+                wt = (q.look_m - xi) / (q.look_m - q.full_m) if xi >= 0.0 else (xi + q.clear_m + q.rear_m) / q.rear_m
                 target = min(1.0, max(0.0, wt)) * aim
             elif q.hold_lane and (np.abs(x[near]) < q.full_m).any():  # not passing, a car close: keep the lane it is in
                 target = max(-q.tp_max, min(q.tp_max, tp))
@@ -1072,26 +1123,27 @@ def _sight_teacher(name: str, **keys: str) -> SensorDriver | None:
     return None
 
 
-#: The values of ``racer_safe:<gamma>:<decel>:<fight decel>:<fight m>``, in order: (SensorRacer keyword, what it is,
+#: The values of ``racer_safe:<gamma>:<decel>:<fight decel>:<fight m>:<clear m>``, in order: (SensorRacer keyword, what it is,
 #: the test it must pass, the allowed range as the error says it).
 _RACER_VALUES = (("grip_exponent", "the grip exponent", lambda v: v >= 1.0, ">= 1 (1: braking in proportion to the grip)"),
                  ("decel_per_mu", "the braking rate", lambda v: 0.0 < v <= 12.0, "in (0, 12] m/s^2 at mu 1 (the default: 9)"),
                  ("fight_decel_per_mu", "the braking rate in a fight", lambda v: 0.0 < v <= 12.0, "in (0, 12] m/s^2 at mu 1"),
-                 ("fight_m", "the fight distance", lambda v: 0.0 < v <= 200.0, "in (0, 200] m (the opponents sensor's range)"))
+                 ("fight_m", "the fight distance", lambda v: 0.0 < v <= 200.0, "in (0, 200] m (the opponents sensor's range)"),
+                 ("clear_m", "the room kept past a car passed", lambda v: 0.0 <= v <= 30.0, "in [0, 30] m (the default: 0)"))
 
 
 def racer_gains(name: str) -> dict[str, Any] | None:
-    """The :class:`SensorRacer` gains of ``racer_safe[:<gamma>[:<decel>[:<fight decel>[:<fight m>]]]]`` (and
+    """The :class:`SensorRacer` gains of ``racer_safe[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>]]]]]`` (and
     ``racer_clean[...]``): ``SensorRacer.BOLD`` / ``CLEAN`` with ``grip_exponent`` gamma (default 2), where given
     ``decel_per_mu`` [m/s^2 at mu 1; the default is ``SensorDriver.FAST``'s 9], ``fight_decel_per_mu`` (the rate while
     a car is within ``fight_m``) and ``fight_m`` [m, default 60] (:data:`_RACER_VALUES`); None for other names;
     :class:`PolicyError` (one line) for a bad value."""
     for base, gains in (("racer_safe", SensorRacer.BOLD), ("racer_clean", SensorRacer.CLEAN)):
         if name == base or name.startswith(base + ":"):
-            form = f"{base}[:<gamma>[:<decel>[:<fight decel>[:<fight m>]]]], e.g. {base}:2 or {base}:1.27:8:9"
+            form = f"{base}[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>]]]]], e.g. {base}:2 or {base}:1.27:8:9"
             parts = name.split(":")[1:]
             if len(parts) > len(_RACER_VALUES):
-                raise PolicyError(f"{name!r}: at most four values after '{base}': {form}")
+                raise PolicyError(f"{name!r}: at most five values after '{base}': {form}")
             out = {**gains, "grip_exponent": SensorRacer.SAFE_GRIP_EXPONENT}
             for text, (key, what, ok, allowed) in zip(parts, _RACER_VALUES):
                 try:
@@ -1175,7 +1227,7 @@ def main(argv: list[str] | None = None) -> int:
     en = sub.add_parser("ensemble", help="write ONE policy file driving several checkpoints as an ensemble (EnsemblePolicy)")
     en.add_argument("out")
     en.add_argument("checkpoints", nargs="+")
-    en.add_argument("--reduce", default="mean", choices=EnsemblePolicy.REDUCE)
+    en.add_argument("--reduce", default="mean", help="mean, median, cautious, medoid or guarded[:<m>] (EnsemblePolicy)")
     mb = sub.add_parser("member", help="write one member of an ensemble file as a one-actor policy file (e.g. for init.actor)")
     mb.add_argument("ensemble")
     mb.add_argument("index", type=int)

@@ -199,7 +199,7 @@ class EnsembleRowActor:
     def __call__(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
         from torcsrl.policies import EnsemblePolicy
 
-        return EnsemblePolicy.combine(torch.stack([m(obs) for m in self.members]), self.reduce)
+        return EnsemblePolicy.combine(torch.stack([m(obs) for m in self.members]), self.reduce, self.policy.near_rows(obs))
 
 
 def row_actor(policy: Policy) -> RowActor | EnsembleRowActor:
