@@ -67,7 +67,8 @@ def screen(policies: list[str], tracks: list[str], *, episodes: int = 3, pace: t
            laps: int = 5, opponents: int = 3, seed: int = 0, workers: int = 1, out: str | None = None,
            surfaces: list[str] | None = None) -> list[dict]:
     """One summary per policy: ``{"policy", "races", "finished", "wins", "collisions_per_race", "contact_free",
-    "most_collisions", "scenarios", "wall_s", "by_surface"}`` (how the collisions spread: :func:`race_summary`);
+    "most_collisions", "contacts_ahead", "contacts_alongside", "contacts_behind", "scenarios", "wall_s", "by_surface"}``
+    (how the collisions spread, and where the other car was: :func:`race_summary`);
     ``by_surface``: the same counts for each surface raced (``{surface: {"races", "finished", "wins",
     "collisions_per_race"}}``). ``surfaces``: race every track on each of them (None: each track on its own surface)."""
     from torcsrl.evaluate.protocol import EvalError, validate_grid
@@ -91,7 +92,8 @@ def screen(policies: list[str], tracks: list[str], *, episodes: int = 3, pace: t
         raced = dict.fromkeys(r["surface"] for r in res["episodes"])  # in the order raced
         by_surface = {s: race_summary([r for r in res["episodes"] if r["surface"] == s]) for s in raced}
         rows.append({"policy": str(spec), **{k: tot[k] for k in ("races", "finished", "wins", "collisions_per_race", "contact_free",
-                                                                  "most_collisions", "scenarios")},
+                                                                  "most_collisions", "contacts_ahead", "contacts_alongside",
+                                                                  "contacts_behind", "scenarios")},
                      "wall_s": time.perf_counter() - t0, "race_rows": [_race_key(r) for r in res["episodes"]],
                      "by_surface": {s: {k: v[k] for k in ("races", "finished", "wins", "collisions_per_race")} for s, v in by_surface.items()}})
     return rows
@@ -230,12 +232,14 @@ def main(argv: list[str] | None = None) -> int:
     on = f" on {' '.join(a.surfaces)}" if a.surfaces else ""
     print(f"race screen: {' '.join(a.tracks)}{on}, {a.laps} laps against {a.opponents} experts at pace "
           f"[{a.pace[0]:g}, {a.pace[1]:g}], {a.episodes} races a track, seed {a.seed}")
-    print("| policy | races | finished | wins | collisions / race | contact-free races | most in a race | scenarios | eligible | wall [s] |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---|---:|")
+    print("| policy | races | finished | wins | collisions / race | contact-free races | most in a race | "
+          "other car ahead · alongside · behind | scenarios | eligible | wall [s] |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|")
     for r in rows:
         ok = eligible(r, a.min_finished, a.min_wins, a.max_collisions, weights)
         print(f"| {r['policy']} | {r['races']} | {r['finished']} | {r['wins']} | {r['collisions_per_race']:.2f} | "
-              f"{r['contact_free']} | {r['most_collisions']} | {r['scenarios']} | {'yes' if ok else 'no'} | {r['wall_s']:.0f} |")
+              f"{r['contact_free']} | {r['most_collisions']} | {r['contacts_ahead']} · {r['contacts_alongside']} · "
+              f"{r['contacts_behind']} | {r['scenarios']} | {'yes' if ok else 'no'} | {r['wall_s']:.0f} |")
     mix = f" (surface-weighted: {', '.join(f'{k} {v:g}' for k, v in weights.items())})" if weights else ""
     print(f"eligible{mix}: finished >= {a.min_finished:g}, wins >= {a.min_wins:g} of the races, <= {a.max_collisions:g} "
           "collisions a race")

@@ -21,6 +21,7 @@ def test_race_table_from_a_short_race(tmp_path):
     row = res["episodes"][0]
     assert row["success"] and row["position"] == 1 and row["win"]  # from pole at full pace against 60 % pace
     assert row["collisions"] == 0 and row["damage"] == 0.0 and row["lead_m"] > 0 and row["opponents"] == 2
+    assert (row["contacts_ahead"], row["contacts_alongside"], row["contacts_behind"]) == (0, 0, 0)
     assert row["start_position"] == 1 and row["opponent_paces"] == [0.6, 0.6]  # learner_slot first
     s = res["summary"][0]
     assert (s["races"], s["finished"], s["wins"], s["mean_position"]) == (1, 1, 1, 1.0)
@@ -33,14 +34,15 @@ def test_race_table_from_a_short_race(tmp_path):
 
 def test_race_summary_counts_dnf_and_table_rows():
     rows = [{"track": "t", "surface": "asphalt", "opponents": 3, "position": 2, "win": False, "collisions": 1, "overtakes": 1,
-             "damage": 0.5, "gap_ahead_m": 4.0, "lead_m": -4.0},
+             "damage": 0.5, "gap_ahead_m": 4.0, "lead_m": -4.0, "contacts_ahead": 1, "contacts_alongside": 0, "contacts_behind": 0},
             {"track": "t", "surface": "asphalt", "opponents": 3, "position": None, "win": False, "collisions": 3, "overtakes": 0,
-             "damage": 2.5, "gap_ahead_m": 9.0, "lead_m": -30.0}]
+             "damage": 2.5, "gap_ahead_m": 9.0, "lead_m": -30.0, "contacts_ahead": 0, "contacts_alongside": 1, "contacts_behind": 2}]
     s = race_summary(rows)
     assert (s["finished"], s["wins"], s["mean_position"], s["collisions_per_race"]) == (1, 0, 2.0, 2.0)
     assert (s["contact_free"], s["most_collisions"]) == (0, 3)
     header, body = race_table([s])
     assert header == list(RACE_COLUMNS) and body[0][3:9] == ["1/2", "0/2", "2.00", "2.00", "0/2", "3"]
+    assert header[9] == "coll. ahead·alongside·behind" and body[0][9] == "1·1·2"  # where the other car was, summed
 
 
 def test_the_race_summary_tells_a_pile_up_from_contacts_spread_over_the_races():

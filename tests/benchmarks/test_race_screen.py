@@ -35,7 +35,9 @@ def test_a_tiny_screen_prints_the_races_and_the_eligibility(capsys):
     assert cells[1] == "2" and 0 <= int(cells[2]) <= 2 and 0 <= int(cells[3]) <= int(cells[2])
     assert 0 <= int(cells[5]) <= 2 and int(cells[6]) >= 0  # contact-free races, the most in one race
     assert (int(cells[6]) == 0) == (int(cells[5]) == 2) and (float(cells[4]) == 0) == (int(cells[5]) == 2)
-    assert cells[7] == "2" and cells[8] == "yes"  # paces drawn per race: 2 races, 2 scenarios; thresholds at 0
+    sides = [int(x) for x in cells[7].split("·")]  # where the other car was: the contacts, each counted once
+    assert len(sides) == 3 and sum(sides) == round(float(cells[4]) * 2)
+    assert cells[8] == "2" and cells[9] == "yes"  # paces drawn per race: 2 races, 2 scenarios; thresholds at 0
     rows = b.screen(["racer_bold"], ["oval"], episodes=2, laps=1, opponents=1)
     assert not b.eligible(rows[0], 0.0, 0.0, -1.0)  # no driver has fewer than 0 collisions a race
     assert b.eligible(rows[0], 0.0, 0.0, 99.0)

@@ -86,7 +86,28 @@ def test_contact_between_two_cars_is_detected_and_reported():
         assert c.fleet.contact_impulse[0, 1] > 0 and c.fleet.contact_impulse[0, 1] == c.fleet.contact_impulse[1, 0]
         assert float(info["impulse"]) > 0 and float(info["damage"]) >= float(info["impulse"]) - 1e-6
         assert c.traffic.collisions[1] == 1  # the other car of the contact is booked too
+        # where the other car was: the learner ran into the car ahead, the parked car was hit from behind
+        assert c.traffic.contact_sides.tolist() == [[1, 0, 0], [0, 0, 1]] and c.traffic.CONTACT_SIDES == ("ahead", "alongside", "behind")
         assert float(info["reward_collision"]) == pytest.approx(float(info["impulse"]), rel=1e-5)
+    finally:
+        env.close()
+
+
+def test_a_contact_side_by_side_is_booked_alongside_for_both_cars():
+    env = make_env(track="oval", num_cars=1, seed=0, sensors=("state",), traffic={"opponents": 1, "driver": {"kind": "parked"}},
+                   **FAST)
+    try:
+        env.reset()
+        c = env.core
+        _place(c, 1, 30.0, d=-2.2)  # parked 2.2 m right of the axis; the learner 2 m behind it, easing right into its flank
+        _place(c, 0, 28.0, d=0.0, speed=4.0)
+        c._locate()
+        for _ in range(20):
+            env.step(TensorDict({"action": torch.tensor([-0.3, 0.2])}, []))
+            if c.traffic.collisions[0]:
+                break
+        assert c.traffic.collisions.tolist() == [1, 1]
+        assert c.traffic.contact_sides.tolist() == [[0, 1, 0], [0, 1, 0]]  # alongside, for each of the two
     finally:
         env.close()
 

@@ -42,7 +42,9 @@ of their own).
 Race books (per car, reported in ``info``): ``racePos`` (1 = leading its group), ``overtakes`` (other cars passed,
 net of being re-passed by the same car), ``collisions`` (contacts begun with another car), ``damage`` (summed
 contact impulse [kN s]), ``impulse`` (this step's contact impulse [kN s]) and ``gapAhead`` [m] (along-track distance
-to the nearest car ahead in the race, 200 when none is within 200 m).
+to the nearest car ahead in the race, 200 when none is within 200 m). Not in ``info``: ``contact_sides [n, 3]``, each
+car's contacts by where the other car was when it began — ahead, alongside or behind (:attr:`Traffic.CONTACT_SIDES`);
+the race evaluation reports them.
 """
 
 from __future__ import annotations
@@ -308,6 +310,7 @@ class Traffic:
         self.start_pos = np.ones(n, dtype=np.int64)
         self.overtakes = np.zeros(n, dtype=np.int64)
         self.collisions = np.zeros(n, dtype=np.int64)
+        self.contact_sides = np.zeros((n, 3), dtype=np.int64)  # contacts begun with the other car ahead / alongside / behind
         self.damage = np.zeros(n)
         self.impulse = np.zeros(n)
         self.gap_ahead = np.full(n, OPPONENT_RANGE_M)
@@ -417,6 +420,7 @@ class Traffic:
         self.start_back[idx] = back
         self.overtakes[idx] = 0
         self.collisions[idx] = 0
+        self.contact_sides[idx] = 0
         self.damage[idx] = 0.0
         self.impulse[idx] = 0.0
         self.gap_ahead[idx] = OPPONENT_RANGE_M
@@ -567,6 +571,8 @@ class Traffic:
         touch = pair_impulse > 0
         new = touch & ~self.touching
         self.collisions = self.collisions + new.sum(axis=1)
+        if new.any():
+            self._book_contact_sides(core, new)
         self.touching = touch
         # reward terms (per car): collision [kN s], positions gained, gap shortfall [-], blocking [m]
         v = core.fleet.vel_body[:, 0]
@@ -584,13 +590,27 @@ class Traffic:
         self._d_prev = d.copy()
         self.terms = np.stack([imp, (old_pos - self.race_pos).astype(np.float64), short, block])
 
+    #: Where the other car's centre was, along the car's heading, when a contact began: ``ahead`` more than half a car
+    #: length in front of the car's centre (it ran into that car, or that car cut across its nose), ``behind`` more
+    #: than half a length behind (hit from behind, or it cut back in across the car it passed), else ``alongside``.
+    CONTACT_SIDES = ("ahead", "alongside", "behind")
+
+    def _book_contact_sides(self, core, new: np.ndarray) -> None:
+        """Count each contact begun this step (``new [n, n]``) by where the other car was (:attr:`CONTACT_SIDES`)."""
+        pos, yaw = core.fleet.pos[:, :2], core.fleet.yaw
+        half = 0.5 * float(self.params.length)
+        for a, b in zip(*np.nonzero(new)):
+            dx, dy = pos[b] - pos[a]
+            x = math.cos(yaw[a]) * dx + math.sin(yaw[a]) * dy  # the other car's centre along car a's heading [m]
+            self.contact_sides[a, 0 if x > half else 2 if x < -half else 1] += 1
+
     def info(self) -> dict[str, np.ndarray]:
         return {"racePos": self.race_pos.copy(), "overtakes": self.overtakes.copy(), "collisions": self.collisions.copy(),
                 "damage": self.damage.copy(), "impulse": self.impulse.copy(), "gapAhead": self.gap_ahead.copy()}
 
     # ------------------------------------------------------------------ exact resume
-    _BOOKS = ("start_back", "race_pos", "start_pos", "overtakes", "collisions", "damage", "impulse", "gap_ahead", "ahead",
-              "touching", "terms", "pace")
+    _BOOKS = ("start_back", "race_pos", "start_pos", "overtakes", "collisions", "contact_sides", "damage", "impulse",
+              "gap_ahead", "ahead", "touching", "terms", "pace")
 
     def get_state(self) -> dict[str, Any]:
         drivers = [None if d is None else {"slip": float(d._slip), "chord": int(d._chord), "chord_front": int(d._chord_front),
@@ -603,6 +623,9 @@ class Traffic:
 
     def set_state(self, state: Mapping[str, Any], core) -> None:
         for k in self._BOOKS:
+            if k == "contact_sides" and k not in state["books"]:  # a state saved before the book existed: none counted
+                self.contact_sides = np.zeros((self.n, 3), dtype=np.int64)
+                continue
             setattr(self, k, np.array(state["books"][k], copy=True))
         self._d_prev = np.array(state["books"]["d_prev"], copy=True)
         for i, d in enumerate(state["drivers"]):

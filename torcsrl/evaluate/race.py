@@ -8,7 +8,9 @@ policy (common random numbers).
 
 Per race (``episodes.csv``): the time-trial numbers (laps, success, fastest lap, ...) plus ``position`` (1 = won;
 ``None`` when the learner did not finish), ``win`` (finished first), ``overtakes`` (net cars passed), ``collisions``
-(contacts begun with another car), ``damage`` (summed contact impulse [kN s]), ``gap_ahead_m`` (along-track gap to
+(contacts begun with another car; ``contacts_ahead`` / ``_alongside`` / ``_behind``: by where the other car's centre
+was, more than half a car length in front, within it, or behind — ran into it or was cut across, rubbed side by side,
+was hit from behind or cut back in too soon), ``damage`` (summed contact impulse [kN s]), ``gap_ahead_m`` (along-track gap to
 the car ahead at the end; 0 when leading), ``lead_m`` (how far ahead of the next car a winner finished, or how far
 behind the leader [m, negative] another finished), ``start_position`` (the learner's place at the start, 1 = front),
 ``start_xy_m`` (where it started, track frame [m]) and ``opponent_paces`` (each opponent's drawn pace).
@@ -103,6 +105,7 @@ def run_race_cell(policy: Policy, track: str, surface: str | None, traffic: Mapp
                          "max_steps": steps, "opponents": int(tr.K), **row,
                          "position": pos if finished else None, "win": finished and pos == 1,
                          "overtakes": int(tr.overtakes[0]), "collisions": int(tr.collisions[0]),
+                         **{f"contacts_{k}": int(v) for k, v in zip(tr.CONTACT_SIDES, tr.contact_sides[0])},
                          "damage": float(tr.damage[0]), "gap_ahead_m": 0.0 if pos == 1 else float(tr.gap_ahead[0]),
                          "lead_m": lead, "start_position": 1 + int((tr.start_back[members][1:] < tr.start_back[members][0]).sum()),
                          "opponent_paces": [round(float(v), 4) for v in np.asarray(tr.pace)[: int(tr.K)]], "start_xy_m": start_xy})
@@ -128,6 +131,7 @@ def race_summary(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
             "collisions_per_race": mean([r["collisions"] for r in rows]),
             "contact_free": sum(int(r["collisions"]) == 0 for r in rows),
             "most_collisions": max((int(r["collisions"]) for r in rows), default=0),
+            **{f"contacts_{k}": sum(int(r.get(f"contacts_{k}", 0)) for r in rows) for k in CONTACT_SIDES},
             "overtakes_per_race": mean([r["overtakes"] for r in rows]),
             "damage_per_race": mean([r["damage"] for r in rows]),
             "mean_gap_ahead_m": mean([r["gap_ahead_m"] for r in fin]), "mean_lead_m": mean([r["lead_m"] for r in fin]),
@@ -135,7 +139,11 @@ def race_summary(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
                                tuple(r.get("opponent_paces") or ())) for r in rows})}
 
 
-RACE_COLUMNS = ("track", "surface", "races", "finished", "wins", "mean pos", "collisions/race", "contact-free", "most coll.", "overtakes/race",
+#: Where the other car was when a contact began (``torcsrl.envs.traffic.Traffic.CONTACT_SIDES``).
+CONTACT_SIDES = ("ahead", "alongside", "behind")
+
+RACE_COLUMNS = ("track", "surface", "races", "finished", "wins", "mean pos", "collisions/race", "contact-free", "most coll.",
+                "coll. ahead·alongside·behind", "overtakes/race",
                 "damage/race [kN s]", "gap ahead [m]", "lead [m]", "scenarios")
 
 
@@ -145,7 +153,7 @@ def race_table(summaries: Sequence[Mapping[str, Any]]) -> tuple[list[str], list[
     for s in summaries:
         body.append([s["track"], s["surface"], str(s["races"]), f"{s['finished']}/{s['races']}", f"{s['wins']}/{s['races']}",
                      _f(s["mean_position"]), _f(s["collisions_per_race"]), f"{s['contact_free']}/{s['races']}",
-                     str(s["most_collisions"]), _f(s["overtakes_per_race"]),
+                     str(s["most_collisions"]), "·".join(str(s[f"contacts_{k}"]) for k in CONTACT_SIDES), _f(s["overtakes_per_race"]),
                      _f(s["damage_per_race"]), _f(s["mean_gap_ahead_m"], "{:.1f}"), _f(s["mean_lead_m"], "{:.1f}"), str(s["scenarios"])])
     return list(RACE_COLUMNS), body
 
@@ -222,7 +230,7 @@ def evaluate_race(policy: str | Policy, tracks: str | Sequence[str], surfaces: A
               f"{episodes} race(s) per track, seed {seed}; scripted opponents give {room:g} m of room to a car alongside "
               f"(side_gap_m{'; 0: blind to it' if room == 0 else ''}).", "", markdown_table(header, body), "",
               "finished: races completed without leaving the track; wins: finished first; mean pos: over finished races; "
-              "collisions: contacts begun with another car; contact-free: races without one; most coll.: the most in one race; damage: summed contact impulse; gap ahead: along-track gap to "
+              "collisions: contacts begun with another car; contact-free: races without one; most coll.: the most in one race; coll. ahead·alongside·behind: the contacts by where the other car was; damage: summed contact impulse; gap ahead: along-track gap to "
               "the car ahead at the end; lead: margin over the next car (winners) or behind the leader (negative); scenarios: "
               "distinct starts raced (the learner's start position and the opponents' paces) — the physics is deterministic, "
               "so races from the same start are the same race.", ""]
