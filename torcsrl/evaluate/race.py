@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from torcsrl.envs.traffic import Traffic
 from torcsrl.evaluate.protocol import (EvalError, Degradation, _base, default_max_steps, drive_episode, make_cell_env,
                                        seed_for, validate_grid)
 from torcsrl.evaluate.results import _f, markdown_table, write_csv, write_json
@@ -105,7 +106,7 @@ def run_race_cell(policy: Policy, track: str, surface: str | None, traffic: Mapp
                          "max_steps": steps, "opponents": int(tr.K), **row,
                          "position": pos if finished else None, "win": finished and pos == 1,
                          "overtakes": int(tr.overtakes[0]), "collisions": int(tr.collisions[0]),
-                         **{f"contacts_{k}": int(v) for k, v in zip(tr.CONTACT_SIDES, tr.contact_sides[0])},
+                         **{f"contacts_{k}": int(v) for k, v in zip(CONTACT_SIDES, tr.contact_sides[0])},
                          "damage": float(tr.damage[0]), "gap_ahead_m": 0.0 if pos == 1 else float(tr.gap_ahead[0]),
                          "lead_m": lead, "start_position": 1 + int((tr.start_back[members][1:] < tr.start_back[members][0]).sum()),
                          "opponent_paces": [round(float(v), 4) for v in np.asarray(tr.pace)[: int(tr.K)]], "start_xy_m": start_xy})
@@ -139,8 +140,8 @@ def race_summary(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
                                tuple(r.get("opponent_paces") or ())) for r in rows})}
 
 
-#: Where the other car was when a contact began (``torcsrl.envs.traffic.Traffic.CONTACT_SIDES``).
-CONTACT_SIDES = ("ahead", "alongside", "behind")
+#: Where the other car was when a contact began (the race books' order).
+CONTACT_SIDES = Traffic.CONTACT_SIDES
 
 RACE_COLUMNS = ("track", "surface", "races", "finished", "wins", "mean pos", "collisions/race", "contact-free", "most coll.",
                 "coll. ahead·alongside·behind", "overtakes/race",
