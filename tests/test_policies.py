@@ -321,6 +321,37 @@ def test_a_racer_with_room_to_clear_holds_its_passing_line_past_the_car_it_passe
     assert now.traffic(r, st, _sectors(s35=far))[0] == 0.0 and clear.traffic(r, st, _sectors(s35=far))[0] > 0.0  # still fading
 
 
+def test_keep_racer_finishes_a_pass_on_its_side_and_holds_its_lane_when_that_side_is_taken():
+    """``racer_keep``: beside the car it passes, with a third car on its passing line, ``racer_safe`` takes the other
+    side's line (across the passed car) while ``racer_keep`` holds its trackPos; with that side free both pass alike."""
+    import math
+
+    from torcsrl.demos import known_teacher, make_teacher
+    from torcsrl.envs.sensors import STATE_SLOTS
+
+    safe, keep = load_policy("racer_safe:1.27:8:9"), load_policy("racer_keep:1.27:8:9")
+    assert keep.race.keep_side and not safe.race.keep_side and keep.fingerprint != safe.fingerprint
+    assert keep.k.grip_exponent == 1.27 and keep.race.bend_lanes == safe.race.bend_lanes == 1.0
+    assert known_teacher("racer_keep:1.27:8:9") and make_teacher("racer_keep:1.27:8:9").race.keep_side
+    with pytest.raises(PolicyError, match="racer_keep:"):
+        load_policy("racer_keep:fast")
+    r, st = _straight_road(half_width_m=10.0, speed_kmh=72.0)
+    tp = 0.25
+    st[STATE_SLOTS.index("trackPos")] = tp
+    w, gap = 10.0, safe.race.pass_gap_m / 10.0
+    d = 2.0  # sector 26 (-85 deg): the car passed, 2 m to the right, level with it (committed: |dy| > 1.5 m)
+    tp_o = tp + d * math.sin(math.radians(175.0 - 10.0 * 26)) / w
+    left, right = tp_o + gap, tp_o - gap
+    beside = _sectors(s26=d)
+    assert safe.traffic(r, st, beside)[0] == pytest.approx(left) and keep.traffic(r, st, beside)[0] == pytest.approx(left)
+    third = _sectors(s26=d, s17=12.0 / math.cos(math.radians(5.0)))  # and a car 12 m ahead, ~1 m left: on that line
+    assert safe.traffic(r, st, third)[0] == pytest.approx(right) and right < tp_o  # across the passed car's path
+    target, cap = keep.traffic(r, st, third)
+    assert target == pytest.approx(tp) and cap < 0.0  # holds its lane and brakes for the car ahead
+    alone = _sectors()
+    assert keep.traffic(r, st, alone) == safe.traffic(r, st, alone) == (0.0, 1.0)
+
+
 def test_clean_racer_widens_its_following_corridor_near_bends_and_hold_lane_keeps_its_lane():
     import numpy as np
 

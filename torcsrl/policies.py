@@ -32,6 +32,8 @@ spec                          policy
                               bold on asphalt, a margin on low grip; ``<d>`` in place of 9: a margin on asphalt
                               too; ``<f>``: the rate while a car is within 60 m (or ``<m>``): pushes in a fight
 ``racer_clean[:<gamma>...]``  ``racer_safe`` with a 1.5-lane following corridor near bends (fewer contacts)
+``racer_keep[:<gamma>...]``   ``racer_safe`` that finishes a pass on the side it is on (holds its lane when
+                              that side is taken, never crosses the passed car's path)
 ``heuristic``                 a sensor-only driver in the style of the TORCS SCR sample robot:
                               steers from ``angle`` / ``trackPos`` and the longest rangefinder
                               beam, picks its speed from the free distance ahead
@@ -114,7 +116,8 @@ REFERENCE_CAMERA_POLICY = Path(__file__).resolve().parent / "assets" / "referenc
 REFERENCE_RACER_POLICY = Path(__file__).resolve().parent / "assets" / "reference_racer.pt"
 #: Names of the built-in policies (anything else is a checkpoint path).
 BUILTIN_POLICIES = ("expert", "expert_centre", "heuristic", "sensor", "sensor_grip", "sensor_fast", "sensor_sight[:<metres>]",
-                    "sensor_fast_sight[:<metres>]", "racer", "racer_bold", "racer_safe[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>]]]]]", "racer_clean[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>]]]]]", "random", "reference", "reference-td3", "reference_camera", "reference_racer")
+                    "sensor_fast_sight[:<metres>]", "racer", "racer_bold", "racer_safe[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>]]]]]", "racer_clean[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>]]]]]",
+                    "racer_keep[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>]]]]]", "random", "reference", "reference-td3", "reference_camera", "reference_racer")
 
 
 class PolicyError(ValueError):
@@ -961,13 +964,18 @@ class SensorRacer(SensorDriver):
     #: 0.75 collisions a race (racer_bold: 21/24, 16/24, 1.08; yielding to a car alongside: 23/24, 18/24, 1.17;
     #: holding its lane while a car is within 30 m, ``hold_lane``: 24/24, 19/24, 1.08).
     CLEAN = {**BOLD, "bend_lanes": 1.5}
+    #: ``racer_keep[:<gamma>...]``: ``racer_safe`` that finishes a pass on the side it is on. Once beside the car it
+    #: passes (``|dy| > 1.5 m``) it never takes the other side's line (across that car's path), and with no room on its
+    #: own side (a third car near that line) it holds its trackPos — the following rules lift or brake for that car —
+    #: where ``racer_safe`` aims at the road's centre.
+    KEEP = {**BOLD, "keep_side": True}
 
     def __init__(self, look_m: float = 60.0, full_m: float = 30.0, rear_m: float = 15.0, pass_gap_m: float = 3.8,
                  tp_max: float = 0.7, lane_m: float = 2.4, length_m: float = 4.5, lift_m: float = 10.0, lift_s: float = 0.8,
                  brake_m: float = 6.0, brake_s: float = 0.5, brake: float = 1.0, pass_radius_m: float = 120.0,
                  bend_m: float = 50.0, bend_lanes: float = 2.5, yield_alongside: bool = True, hold_lane: bool = False,
                  fight_decel_per_mu: float | None = None, fight_m: float = 60.0, clear_m: float = 0.0,
-                 opponents_key: str = "opponents", **kw: Any) -> None:
+                 keep_side: bool = False, opponents_key: str = "opponents", **kw: Any) -> None:
         from torcsrl.envs.traffic import OPPONENT_RANGE_M, OPPONENT_SECTORS
 
         if fight_decel_per_mu is not None and not (math.isfinite(float(fight_decel_per_mu)) and float(fight_decel_per_mu) > 0.0):
@@ -987,7 +995,7 @@ class SensorRacer(SensorDriver):
                                     brake=brake, pass_radius_m=pass_radius_m, bend_m=bend_m, bend_lanes=bend_lanes,
                                     yield_alongside=bool(yield_alongside), hold_lane=bool(hold_lane),
                                     fight_decel_per_mu=None if fight_decel_per_mu is None else float(fight_decel_per_mu),
-                                    fight_m=float(fight_m), clear_m=float(clear_m))
+                                    fight_m=float(fight_m), clear_m=float(clear_m), keep_side=bool(keep_side))
         self.fingerprint = _code_fingerprint(SensorDriver, SensorRacer, repr(sorted(vars(self.k).items())),
                                              repr(sorted(vars(self.race).items())))
         phi = np.radians(175.0 - 10.0 * np.arange(OPPONENT_SECTORS))
@@ -1029,13 +1037,14 @@ class SensorRacer(SensorDriver):
             def free(a: float) -> bool:  # room beside the car passed, and no other car near that line
                 return abs(a - tp_o[i]) >= gap - 1e-6 and not (others & (np.abs(tp_o - a) * w < q.lane_m)).any()
 
-            aim = next((a for a in sides if free(a)), None)
             committed = abs(dy[i]) > 1.5  # already beside it: finish the pass; else start one only where the road is straight
+            keep = q.keep_side and committed  # beside it, the other side's line crosses its path
+            aim = next((a for a in (sides[:1] if keep else sides) if free(a)), None)
             if aim is not None and (committed or (abs(kappa) * q.pass_radius_m < 1.0 and not bend_near)):
                 xi = float(x[i])
                 wt = (q.look_m - xi) / (q.look_m - q.full_m) if xi >= 0.0 else (xi + q.clear_m + q.rear_m) / q.rear_m
                 target = min(1.0, max(0.0, wt)) * aim
-            elif q.hold_lane and (np.abs(x[near]) < q.full_m).any():  # not passing, a car close: keep the lane it is in
+            elif keep or (q.hold_lane and (np.abs(x[near]) < q.full_m).any()):  # no room: keep the lane it is in
                 target = max(-q.tp_max, min(q.tp_max, tp))
         cap = 1.0
         braking = braking or bend_near
@@ -1134,11 +1143,11 @@ _RACER_VALUES = (("grip_exponent", "the grip exponent", lambda v: v >= 1.0, ">= 
 
 def racer_gains(name: str) -> dict[str, Any] | None:
     """The :class:`SensorRacer` gains of ``racer_safe[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>]]]]]`` (and
-    ``racer_clean[...]``): ``SensorRacer.BOLD`` / ``CLEAN`` with ``grip_exponent`` gamma (default 2), where given
+    ``racer_clean[...]``, ``racer_keep[...]``): ``SensorRacer.BOLD`` / ``CLEAN`` / ``KEEP`` with ``grip_exponent`` gamma (default 2), where given
     ``decel_per_mu`` [m/s^2 at mu 1; the default is ``SensorDriver.FAST``'s 9], ``fight_decel_per_mu`` (the rate while
     a car is within ``fight_m``) and ``fight_m`` [m, default 60] (:data:`_RACER_VALUES`); None for other names;
     :class:`PolicyError` (one line) for a bad value."""
-    for base, gains in (("racer_safe", SensorRacer.BOLD), ("racer_clean", SensorRacer.CLEAN)):
+    for base, gains in (("racer_safe", SensorRacer.BOLD), ("racer_clean", SensorRacer.CLEAN), ("racer_keep", SensorRacer.KEEP)):
         if name == base or name.startswith(base + ":"):
             form = f"{base}[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>]]]]], e.g. {base}:2 or {base}:1.27:8:9"
             parts = name.split(":")[1:]
