@@ -32,6 +32,29 @@ def test_race_table_from_a_short_race(tmp_path):
     assert (tmp_path / "race_oval_asphalt.png").stat().st_size > 0 and (tmp_path / "race_episodes.csv").exists()
 
 
+def test_the_race_trace_marks_each_contact_by_where_the_other_car_was(tmp_path):
+    """A full-pace expert from the back of the grid runs into two 50 % experts (it does not see them): the trace's
+    contacts carry their sides, the learner's add up to its row's ``contacts_*`` and the race plot draws them."""
+    from torcsrl.envs import tracks
+    from torcsrl.envs.traffic import Traffic
+    from torcsrl.evaluate.plots import plot_race
+    from torcsrl.evaluate.race import run_race_cell
+    from torcsrl.policies import load_policy
+
+    tr = {"opponents": 2, "driver": {"kind": "expert", "pace": 0.5}, "order": "fixed", "learner_slot": "last"}
+    rows, traces = run_race_cell(load_policy("expert"), "oval", None, tr, laps=1, env_kwargs={"control_hz": 10, "substeps": 20},
+                                 trace=True)
+    row, hits = rows[0], traces[0]["hits"]
+    assert row["collisions"] >= 1 and all(side in Traffic.CONTACT_SIDES for _, _, side in hits)
+    own = [side for _, car, side in hits if car == 0]
+    assert len(own) == row["collisions"]
+    assert [own.count(k) for k in Traffic.CONTACT_SIDES] == [row[f"contacts_{k}"] for k in Traffic.CONTACT_SIDES]
+    assert row["contacts_ahead"] >= 1 and any(car != 0 and side == "behind" for _, car, side in hits)  # it ran into them
+    assert plot_race(tracks.load("oval"), traces[0], tmp_path / "race.png").stat().st_size > 0
+    old = {**traces[0], "hits": [(t, c) for t, c, _ in hits]}  # a trace without sides (crosses) still plots
+    assert plot_race(tracks.load("oval"), old, tmp_path / "old.png").stat().st_size > 0
+
+
 def test_race_summary_counts_dnf_and_table_rows():
     rows = [{"track": "t", "surface": "asphalt", "opponents": 3, "position": 2, "win": False, "collisions": 1, "overtakes": 1,
              "damage": 0.5, "gap_ahead_m": 4.0, "lead_m": -4.0, "contacts_ahead": 1, "contacts_alongside": 0, "contacts_behind": 0},

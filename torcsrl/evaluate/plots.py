@@ -83,8 +83,10 @@ def write_gif(frames: np.ndarray, path: str | Path, fps: int = 10) -> Path | Non
 
 def plot_race(track, trace: Mapping[str, object], path: str | Path, title: str = "") -> Path:
     """Top-down PNG of a race: every car's trajectory in its own colour (the learner thick, labelled), grid positions
-    as dots, each collision (a contact begun) as a black cross on the car involved. ``trace``: ``xy [steps, cars, 2]``
-    (track frame), ``hits`` [(step, car)], ``learner`` (car index)."""
+    as dots, each collision (a contact begun) on the car involved: the learner's by where the other car was (a
+    triangle up: ahead, a diamond: alongside, a triangle down: behind; :data:`Traffic.CONTACT_SIDES`), the opponents'
+    as black crosses. ``trace``: ``xy [steps, cars, 2]`` (track frame), ``hits`` [(step, car[, side])] (a hit without
+    a side: a cross), ``learner`` (car index)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -106,12 +108,21 @@ def plot_race(track, trace: Mapping[str, object], path: str | Path, title: str =
             label = "learner" if c == learner else f"opponent {c}"
             ax.plot(xy[:, c, 0], xy[:, c, 1], color=colors(c % 10), lw=lw, zorder=z, label=label, alpha=0.9)
             ax.plot(xy[0, c, 0], xy[0, c, 1], "o", color=colors(c % 10), ms=5, zorder=4)
-        hits = list(trace.get("hits") or [])
-        if hits:
-            pts = np.array([xy[min(t, len(xy) - 1), c] for t, c in hits])
-            own = sum(1 for _, c in hits if c == learner)  # a contact marks each car in it: the learner's, the opponents'
-            ax.plot(pts[:, 0], pts[:, 1], "x", color="k", ms=9, mew=2.2, zorder=5,
-                    label=f"contact begun ({own} of the learner, {len(hits) - own} of opponents)")
+        hits = [(int(h[0]), int(h[1]), h[2] if len(h) > 2 else None) for h in (trace.get("hits") or [])]
+        at = lambda t, c: xy[min(t, len(xy) - 1), c]  # noqa: E731
+        # a contact marks each car in it: the learner's by side, the rest (and any without a side) as crosses
+        for side, marker in (("ahead", "^"), ("alongside", "D"), ("behind", "v")):
+            pts = [at(t, c) for t, c, s in hits if c == learner and s == side]
+            if pts:
+                pts = np.array(pts)
+                ax.plot(pts[:, 0], pts[:, 1], marker, color="k", mfc="w", ms=8, mew=2.0, zorder=6,
+                        label=f"learner's contact, other car {side} ({len(pts)})")
+        rest = [at(t, c) for t, c, s in hits if c != learner or s is None]
+        if rest:
+            rest = np.array(rest)
+            n_own = sum(1 for _, c, s in hits if c == learner and s is None)
+            ax.plot(rest[:, 0], rest[:, 1], "x", color="k", ms=9, mew=2.2, zorder=5,
+                    label=f"contact begun ({len(rest) - n_own} of opponents" + (f", {n_own} of the learner)" if n_own else ")"))
         # below the axes: inside, a fixed corner can hide the very contact the plot is for
         ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=3, fontsize=8, frameon=False)
     return _save_top_down(fig, ax, path, title or track.name)

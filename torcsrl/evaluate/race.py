@@ -75,8 +75,9 @@ def run_race_cell(policy: Policy, track: str, surface: str | None, traffic: Mapp
             ctx = EpisodeContext(track=core.car_tracks[0], seed=seed_for(seed, "policy", track, surface_name, e), episode=e,
                                  dt=float(core.dt))
             xy: list[np.ndarray] = []
-            hits: list[tuple[int, int]] = []
+            hits: list[tuple[int, int, str]] = []
             seen = np.zeros(core.n, dtype=np.int64)
+            seen_sides = np.zeros((core.n, len(CONTACT_SIDES)), dtype=np.int64)
 
             start_xy: list[float] = []
 
@@ -86,10 +87,11 @@ def run_race_cell(policy: Policy, track: str, surface: str | None, traffic: Mapp
                 if trace:
                     xy.append(core.fleet.pos[:, :2] - core.car_origins())
                     if t == 0:
-                        seen[:] = tr.collisions
-                    for i in np.flatnonzero(tr.collisions > seen).tolist():  # a contact begun
-                        hits.append((t, i))
-                    seen[:] = tr.collisions
+                        seen[:], seen_sides[:] = tr.collisions, tr.contact_sides
+                    for i in np.flatnonzero(tr.collisions > seen).tolist():  # a contact begun, by where the other car was
+                        for k, d in enumerate((tr.contact_sides[i] - seen_sides[i]).tolist()):
+                            hits.extend([(t, i, CONTACT_SIDES[k])] * d)
+                    seen[:], seen_sides[:] = tr.collisions, tr.contact_sides
 
             book, _ = drive_episode(env, policy, laps, steps, observer=observer, on_reset=lambda: policy.reset(ctx))
             row = book.row(0, float(core.dt))
