@@ -124,5 +124,5 @@ def plot_race(track, trace: Mapping[str, object], path: str | Path, title: str =
             ax.plot(rest[:, 0], rest[:, 1], "x", color="k", ms=9, mew=2.2, zorder=5,
                     label=f"contact begun ({len(rest) - n_own} of opponents" + (f", {n_own} of the learner)" if n_own else ")"))
         # below the axes: inside, a fixed corner can hide the very contact the plot is for
-        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=3, fontsize=8, frameon=False)
+        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=3, fontsize=8, frameon=False)
     return _save_top_down(fig, ax, path, title or track.name)
