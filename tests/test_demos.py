@@ -363,6 +363,34 @@ def test_a_killed_dagger_run_resumes_exactly_after_its_last_round(tmp_path, demo
         run(tmp_path / "old", 2, "checkpoint.resume=latest")
 
 
+def test_dagger_fits_on_the_same_batches_without_the_next_observations(tmp_path, demo_dir, monkeypatch):
+    """Imitation samples its batches without ``next`` (only CAPS's temporal term reads it): the same rows, so the
+    actor is the one a fit on full transitions gives, to the bit; with ``algo.smooth.temporal`` > 0 it samples them whole."""
+    import torcsrl.demos as demos_mod
+    from torcsrl.train import train
+    from torcsrl.utils.checkpoint import load_checkpoint
+    from torcsrl.utils.logging import read_csv_metric
+
+    real, asked = demos_mod.mixed_sample, []
+
+    def run(d, whole=False, *extra):
+        def spy(buffers, batch_size, successor=True):
+            asked.append(successor)
+            return real(buffers, batch_size, True if whole else successor)
+
+        monkeypatch.setattr(demos_mod, "mixed_sample", spy)
+        asked.clear()
+        res = train(cfg_for("algo=dagger", f"demos.path={demo_dir}", "algo.bc_steps=20", "demos.dagger_rounds=1",
+                            "demos.dagger_frames=60", "logger.every_frames=10", f"run_dir={d}", *extra))
+        return load_checkpoint(res["checkpoint"])["actor"], set(asked)
+
+    lean, flags = run(tmp_path / "lean")
+    whole, _ = run(tmp_path / "whole", True)
+    assert flags == {False} and lean.keys() == whole.keys() and all(torch.equal(lean[k], whole[k]) for k in lean)
+    _, flags = run(tmp_path / "caps", False, "algo.smooth.temporal=0.2")
+    assert flags == {True} and read_csv_metric(tmp_path / "caps", "loss/smooth_temporal")
+
+
 def test_slow_rows_weigh_more_in_the_imitation_fit():
     """``algo.bc_slow_weight``: a row whose newest state reading drives slower than ``bc_slow_kmh`` counts w times.
     Half the rows crawl at 2 km/h (label pedal +1, creep off), half drive at 100 km/h (label -1): the plain fit is 0,

@@ -266,13 +266,14 @@ def load_demos(path: str | Path, record: dict[str, Any], batch_size: int, n_step
     return buf
 
 
-def mixed_sample(buffers: list, batch_size: int):
-    """A batch drawn from several buffers in proportion to their sizes (the keys they all hold)."""
+def mixed_sample(buffers: list, batch_size: int, successor: bool = True):
+    """A batch drawn from several buffers in proportion to their sizes (the keys they all hold); ``successor=False``:
+    without ``next`` (:meth:`ReplayBuffer.sample`: the same rows)."""
     sizes = [len(b) for b in buffers]
     total = sum(sizes)
     counts = [batch_size * s // total for s in sizes]
     counts[0] += batch_size - sum(counts)
-    parts = [b.sample(c) for b, c in zip(buffers, counts) if c > 0]
+    parts = [b.sample(c, successor) for b, c in zip(buffers, counts) if c > 0]
     if len(parts) == 1:
         return parts[0]
     common = set(parts[0].keys(True, True)).intersection(*(p.keys(True, True) for p in parts[1:]))
@@ -294,8 +295,8 @@ class DemoPool:
     def __len__(self) -> int:
         return sum(len(b) for b in self.buffers)
 
-    def sample(self, batch_size: int | None = None):
-        return mixed_sample(self.buffers, int(batch_size or self.batch_size))
+    def sample(self, batch_size: int | None = None, successor: bool = True):
+        return mixed_sample(self.buffers, int(batch_size or self.batch_size), successor)
 
 
 def main() -> None:

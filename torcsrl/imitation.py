@@ -110,6 +110,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         near_car, slow = _near_car(cfg, obs_keys), _slow(cfg, obs_keys)
         rounds = int(cfg.demos.dagger_rounds) if algo == "dagger" else 0
         steps_per_fit, batch_size, precision = int(cfg.algo.bc_steps), int(cfg.algo.batch_size), str(cfg.algo.precision)
+        successor = float(cfg.algo.smooth.temporal) > 0  # only CAPS's temporal term reads the next observation
         lr_schedule = str(cfg.algo.get("bc_lr_schedule", "constant"))
         updates = frames = first = 0
         result: dict[str, Any] = {}
@@ -185,7 +186,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
                 print(f"[torcsrl] actor from {started}" + ("; DAgger rounds refit it (round 0 only validates it)" if fit == 0 else ""),
                       file=sys.stderr)
             for i in range(fit):
-                bc, smooth = bc_step(net, optim, mixed_sample(buffers, batch_size).to(device), precision, cfg.algo, aux, near_car, slow)
+                bc, smooth = bc_step(net, optim, mixed_sample(buffers, batch_size, successor).to(device), precision, cfg.algo, aux, near_car, slow)
                 if sched is not None:
                     with warnings.catch_warnings():  # FusedAdam.fast_step bypasses the step counter torch's check reads
                         warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step\\(\\)` before")

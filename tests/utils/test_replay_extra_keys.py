@@ -61,3 +61,30 @@ def test_a_dump_is_a_function_of_the_steps_written_not_of_uninitialised_memory(t
         back.loads(tmp_path / f"d{k}")
         assert torch.equal(back[:]["action"], rb[:]["action"])  # the steps written are untouched
     assert sums[0] == sums[1]
+
+
+def test_sampling_without_the_successor_draws_the_same_rows_and_leaves_next_out():
+    """``successor=False`` (imitation's batches): the same random rows as a full sample, every key of the step itself
+    equal, no ``next``; so a DAgger fit that skips ``next`` trains on the very batches it did before."""
+    from torcsrl.demos import DemoPool, mixed_sample
+
+    bufs = []
+    for n in (30, 12, 9):
+        rb = ReplayBuffer(100, 16, ["obs"], extra_keys=["expert_action"])
+        for t in range(n):
+            rb.extend(_step(100 * len(bufs) + t, done=t % 7 == 6))
+        bufs.append(rb)
+    torch.manual_seed(5)
+    full = bufs[0].sample()
+    torch.manual_seed(5)
+    lean = bufs[0].sample(successor=False)
+    assert "next" in full.keys() and set(lean.keys()) == {"obs", "action", "expert_action", "index"}
+    assert all(torch.equal(lean[k], full[k]) for k in lean.keys())
+    for sample in (lambda s: mixed_sample(bufs, 24, s), lambda s: DemoPool(bufs).sample(24, s)):
+        torch.manual_seed(6)
+        full = sample(True)
+        torch.manual_seed(6)
+        lean = sample(False)
+        assert "next" in full.keys() and "next" not in lean.keys() and lean.batch_size == full.batch_size == torch.Size([24])
+        assert all(torch.equal(lean[k], full[k]) for k in lean.keys())
+        assert {int(v) // 100 for v in lean["obs"][:, 0]} == {0, 1, 2}  # every buffer drawn from, in proportion

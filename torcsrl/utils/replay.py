@@ -330,13 +330,16 @@ class ReplayBuffer:
         out = frames.index_select(0, order.reshape(-1))
         return out.reshape(rows.numel(), k * frames.shape[1], *frames.shape[2:])
 
-    def transitions(self, rows: torch.Tensor) -> TensorDict:
-        """The (n-step) transitions starting at ring rows ``rows`` (a 1-D long tensor)."""
+    def transitions(self, rows: torch.Tensor, successor: bool = True) -> TensorDict:
+        """The (n-step) transitions starting at ring rows ``rows`` (a 1-D long tensor); ``successor=False``: the steps
+        without ``next`` (its observations, reward and flags)."""
         st = self._rows
         out = {k: self._stacked(k, o, rows) if k in self.history else o.index_select(0, rows) for k, o in zip(self.obs_keys, self._obs)}
         out["action"] = st["action"].index_select(0, rows)
         for k in self.extra_keys:
             out[k] = st[k].index_select(0, rows)
+        if not successor:
+            return TensorDict({**out, "index": rows}, batch_size=[rows.numel()])
         if self.n_steps == 1:
             end = rows
             reward = st["reward"].index_select(0, rows)
@@ -358,17 +361,18 @@ class ReplayBuffer:
         b = rows.numel()
         return TensorDict({**out, **extra, "index": rows, "next": TensorDict(nxt, batch_size=[b])}, batch_size=[b])
 
-    def sample(self, batch_size: int | None = None) -> TensorDict:
-        """A batch of transitions, uniform (or prioritized) over the sampleable ones."""
+    def sample(self, batch_size: int | None = None, successor: bool = True) -> TensorDict:
+        """A batch of transitions, uniform (or prioritized) over the sampleable ones; ``successor=False``: without
+        ``next`` (the same rows from the same random draws: for losses that read only the step itself, e.g. imitation)."""
         b = int(batch_size or self.batch_size)
         n = len(self)
         if n == 0:
             raise RuntimeError("cannot sample from an empty replay buffer")
         if self.priorities is None:
             rows = (torch.randint(0, n, (b,)) + (self.written - self.lag - n)) % self.rows
-            return self.transitions(rows)
+            return self.transitions(rows, successor)
         rows, w = self.priorities.sample(n, b)
-        td = self.transitions(rows)
+        td = self.transitions(rows, successor)
         td.set("priority_weight", w)
         return td
 
