@@ -79,6 +79,8 @@ def write_gif(frames: np.ndarray, path: str | Path, fps: int = 10) -> Path | Non
     return path
 
 
+#: The race plot's marker of a learner's contact by where the other car was (:data:`Traffic.CONTACT_SIDES`).
+_SIDE_MARKERS = {"ahead": "^", "alongside": "D", "behind": "v"}
 
 
 def plot_race(track, trace: Mapping[str, object], path: str | Path, title: str = "") -> Path:
@@ -111,7 +113,10 @@ def plot_race(track, trace: Mapping[str, object], path: str | Path, title: str =
         hits = [(int(h[0]), int(h[1]), h[2] if len(h) > 2 else None) for h in (trace.get("hits") or [])]
         at = lambda t, c: xy[min(t, len(xy) - 1), c]  # noqa: E731
         # a contact marks each car in it: the learner's by side, the rest (and any without a side) as crosses
-        for side, marker in (("ahead", "^"), ("alongside", "D"), ("behind", "v")):
+        from torcsrl.envs.traffic import Traffic
+
+        for side in Traffic.CONTACT_SIDES:
+            marker = _SIDE_MARKERS[side]
             pts = [at(t, c) for t, c, s in hits if c == learner and s == side]
             if pts:
                 pts = np.array(pts)
