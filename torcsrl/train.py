@@ -355,7 +355,7 @@ def pretrain(agent, hot, loss, optim, target_updater, demos: ReplayBuffer, bc_st
 
     out = {}
     for _ in range(int(bc_steps)):
-        out["loss/bc"], _ = bc_step(loss, optim, demos.sample().to(device), precision)
+        out["loss/bc"], _ = bc_step(loss, optim, demos.sample(successor=False).to(device), precision)  # no next: a plain BC loss
     with torch.no_grad():  # targets start as the pre-trained actor
         for tgt, src in zip(*target_updater._lists):
             tgt.copy_(src)

@@ -94,6 +94,8 @@ def plot_race(track, trace: Mapping[str, object], path: str | Path, title: str =
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from torcsrl.envs.traffic import Traffic
+
     xy = np.asarray(trace["xy"], dtype=float)
     learner = int(trace.get("learner", 0))
     span = np.ptp(np.vstack([track.left_edge, track.right_edge]), axis=0)
@@ -113,8 +115,6 @@ def plot_race(track, trace: Mapping[str, object], path: str | Path, title: str =
         hits = [(int(h[0]), int(h[1]), h[2] if len(h) > 2 else None) for h in (trace.get("hits") or [])]
         at = lambda t, c: xy[min(t, len(xy) - 1), c]  # noqa: E731
         # a contact marks each car in it: the learner's by side, the rest (and any without a side) as crosses
-        from torcsrl.envs.traffic import Traffic
-
         for side in Traffic.CONTACT_SIDES:
             marker = _SIDE_MARKERS[side]
             pts = [at(t, c) for t, c, s in hits if c == learner and s == side]
