@@ -352,6 +352,43 @@ def test_keep_racer_finishes_a_pass_on_its_side_and_holds_its_lane_when_that_sid
     assert keep.traffic(r, st, alone) == safe.traffic(r, st, alone) == (0.0, 1.0)
 
 
+def test_yield_racer_completes_a_pass_before_the_braking_zone_or_gives_it_up():
+    """``racer_yield``: within ``abandon_m`` of its braking point it starts no pass, and beside a car it has not
+    cleared by a car length it holds its lane (braking while that car's centre is ahead of its own), where
+    ``racer_safe`` finishes the pass into the bend; far from the bend, or a car length clear, both drive alike."""
+    import math
+
+    from torcsrl.demos import known_teacher, make_teacher
+    from torcsrl.envs.sensors import STATE_SLOTS
+
+    safe, yld = load_policy("racer_safe:1.27:8:9"), load_policy("racer_yield:1.27:8:9")
+    assert yld.race.abandon_m == 30.0 and safe.race.abandon_m is None and yld.fingerprint != safe.fingerprint
+    assert yld.k.grip_exponent == 1.27 and yld.race.bend_lanes == safe.race.bend_lanes == 1.0
+    assert known_teacher("racer_yield:1.27:8:9") and make_teacher("racer_yield:1.27:8:9").race.abandon_m == 30.0
+    with pytest.raises(PolicyError, match="racer_yield:"):
+        load_policy("racer_yield:fast")
+    r_far, st = _straight_road(half_width_m=10.0, speed_kmh=72.0)  # 20 m/s: braking at 8 m/s^2 takes 25 m
+    st[STATE_SLOTS.index("trackPos")] = 0.25
+    r_bend = r_far.copy()
+    r_bend[yld.centre] = 50.0  # the road ends 50 m ahead: within 25 + 30 m of the bend, not within 25 + 20
+    cases = {"level": _sectors(s26=2.0),  # -85 deg, 2 m: beside it, its centre 0.17 m ahead
+             "half ahead": _sectors(s28=3.0),  # -105 deg, 3 m: its centre 0.8 m behind, not yet a car length
+             "clear": _sectors(s33=6.0),  # -155 deg, 6 m: 5.4 m behind (a car length clear), 2.5 m right
+             "to pass": _sectors(s18=15.0)}  # -5 deg, 15 m ahead, 1.3 m right: a pass not yet started
+    for opp in cases.values():  # far from the bend: the same driver
+        assert yld.traffic(r_far, st, opp) == safe.traffic(r_far, st, opp)
+    assert safe.traffic(r_bend, st, cases["level"])[0] > 0.4  # racer_safe: on into the bend on its passing line (0.43)
+    assert yld.traffic(r_bend, st, cases["level"]) == (pytest.approx(0.25), -yld.race.brake)  # its lane, braking
+    assert yld.traffic(r_bend, st, cases["half ahead"]) == (pytest.approx(0.25), 1.0)  # its lane, no lift
+    assert yld.traffic(r_bend, st, cases["clear"]) == safe.traffic(r_bend, st, cases["clear"])
+    assert safe.traffic(r_bend, st, cases["to pass"])[0] > 0.25 and yld.traffic(r_bend, st, cases["to pass"])[0] == 0.0
+    later = load_policy("racer_yield:1.27:8:9")
+    later.race.abandon_m = 20.0  # 50 m is beyond 25 + 20 m: not in the zone yet
+    assert later.traffic(r_bend, st, cases["level"]) == safe.traffic(r_bend, st, cases["level"])
+    with pytest.raises(ValueError, match="abandon_m"):
+        type(yld)(abandon_m=-1.0)
+
+
 def test_clean_racer_widens_its_following_corridor_near_bends_and_hold_lane_keeps_its_lane():
     import numpy as np
 

@@ -47,7 +47,8 @@ PRIVILEGED_SLOTS: tuple[str, ...] = tuple(f"track_{i}" for i in range(19)) + ("a
 #: Teachers that label demonstrations (:func:`make_teacher`).
 TEACHERS = ("expert", "expert_centre", "sensor", "sensor_grip", "sensor_fast", "racer", "racer_bold", "racer_safe[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>]]]]]",
             "racer_clean[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>]]]]]",
-            "racer_keep[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>]]]]]", "sensor_sight[:<metres>]", "sensor_fast_sight[:<metres>]")
+            "racer_keep[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>]]]]]",
+            "racer_yield[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>]]]]]", "sensor_sight[:<metres>]", "sensor_fast_sight[:<metres>]")
 
 
 def known_teacher(name: str) -> bool:
@@ -109,7 +110,7 @@ def make_teacher(name: str):
     from torcsrl.policies import PolicyError, SensorRacer, _sight_teacher, racer_gains
 
     try:
-        racer = racer_gains(name)  # racer_safe / racer_clean / racer_keep: racer_bold with a low-grip margin
+        racer = racer_gains(name)  # racer_safe / racer_clean / racer_keep / racer_yield: racer_bold with a low-grip margin
     except PolicyError as err:
         raise DemoError(f"demos.teacher={err}") from None
     if racer is not None:

@@ -34,6 +34,8 @@ spec                          policy
 ``racer_clean[:<gamma>...]``  ``racer_safe`` with a 1.5-lane following corridor near bends (fewer contacts)
 ``racer_keep[:<gamma>...]``   ``racer_safe`` that finishes a pass on the side it is on (holds its lane when
                               that side is taken, never crosses the passed car's path)
+``racer_yield[:<gamma>...]``  ``racer_safe`` that completes a pass before the braking zone of the bend
+                              ahead or gives it up (holds its lane, brakes to drop behind)
 ``heuristic``                 a sensor-only driver in the style of the TORCS SCR sample robot:
                               steers from ``angle`` / ``trackPos`` and the longest rangefinder
                               beam, picks its speed from the free distance ahead
@@ -117,7 +119,8 @@ REFERENCE_RACER_POLICY = Path(__file__).resolve().parent / "assets" / "reference
 #: Names of the built-in policies (anything else is a checkpoint path).
 BUILTIN_POLICIES = ("expert", "expert_centre", "heuristic", "sensor", "sensor_grip", "sensor_fast", "sensor_sight[:<metres>]",
                     "sensor_fast_sight[:<metres>]", "racer", "racer_bold", "racer_safe[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>]]]]]", "racer_clean[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>]]]]]",
-                    "racer_keep[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>]]]]]", "random", "reference", "reference-td3", "reference_camera", "reference_racer")
+                    "racer_keep[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>]]]]]",
+                    "racer_yield[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>]]]]]", "random", "reference", "reference-td3", "reference_camera", "reference_racer")
 
 
 class PolicyError(ValueError):
@@ -969,13 +972,19 @@ class SensorRacer(SensorDriver):
     #: own side (a third car near that line) it holds its trackPos — the following rules lift or brake for that car —
     #: where ``racer_safe`` aims at the road's centre.
     KEEP = {**BOLD, "keep_side": True}
+    #: ``racer_yield[:<gamma>...]``: ``racer_safe`` that completes a pass before the braking zone or gives it up. Within
+    #: ``abandon_m`` [m] of its braking point for the bend ahead (the free distance straight ahead less than its
+    #: braking distance ``v^2 / (2 decel)`` plus ``abandon_m``) it starts no pass, and beside a car it has not yet
+    #: cleared by a car length it holds its lane, braking to drop behind while that car's centre is ahead of its own
+    #: (``racer_safe`` and ``racer_keep`` finish the pass into the bend, side by side).
+    YIELD = {**BOLD, "abandon_m": 30.0}
 
     def __init__(self, look_m: float = 60.0, full_m: float = 30.0, rear_m: float = 15.0, pass_gap_m: float = 3.8,
                  tp_max: float = 0.7, lane_m: float = 2.4, length_m: float = 4.5, lift_m: float = 10.0, lift_s: float = 0.8,
                  brake_m: float = 6.0, brake_s: float = 0.5, brake: float = 1.0, pass_radius_m: float = 120.0,
                  bend_m: float = 50.0, bend_lanes: float = 2.5, yield_alongside: bool = True, hold_lane: bool = False,
                  fight_decel_per_mu: float | None = None, fight_m: float = 60.0, clear_m: float = 0.0,
-                 keep_side: bool = False, opponents_key: str = "opponents", **kw: Any) -> None:
+                 keep_side: bool = False, abandon_m: float | None = None, opponents_key: str = "opponents", **kw: Any) -> None:
         from torcsrl.envs.traffic import OPPONENT_RANGE_M, OPPONENT_SECTORS
 
         if fight_decel_per_mu is not None and not (math.isfinite(float(fight_decel_per_mu)) and float(fight_decel_per_mu) > 0.0):
@@ -984,6 +993,8 @@ class SensorRacer(SensorDriver):
             raise ValueError(f"SensorRacer fight_m must be in (0, {OPPONENT_RANGE_M:g}] m (the opponents sensor's range), got {fight_m}")
         if not (math.isfinite(float(clear_m)) and 0.0 <= float(clear_m) <= 30.0):
             raise ValueError(f"SensorRacer clear_m must be in [0, 30] m, got {clear_m}")
+        if abandon_m is not None and not (math.isfinite(float(abandon_m)) and 0.0 <= float(abandon_m) <= OPPONENT_RANGE_M):
+            raise ValueError(f"SensorRacer abandon_m must be None (off) or in [0, {OPPONENT_RANGE_M:g}] m, got {abandon_m}")
         super().__init__(**{**SensorDriver.FAST, **kw})
         self.spec = "racer"
         self.obs_keys = ("rangefinder", "state", "opponents")
@@ -995,7 +1006,8 @@ class SensorRacer(SensorDriver):
                                     brake=brake, pass_radius_m=pass_radius_m, bend_m=bend_m, bend_lanes=bend_lanes,
                                     yield_alongside=bool(yield_alongside), hold_lane=bool(hold_lane),
                                     fight_decel_per_mu=None if fight_decel_per_mu is None else float(fight_decel_per_mu),
-                                    fight_m=float(fight_m), clear_m=float(clear_m), keep_side=bool(keep_side))
+                                    fight_m=float(fight_m), clear_m=float(clear_m), keep_side=bool(keep_side),
+                                    abandon_m=None if abandon_m is None else float(abandon_m))
         self.fingerprint = _code_fingerprint(SensorDriver, SensorRacer, repr(sorted(vars(self.k).items())),
                                              repr(sorted(vars(self.race).items())))
         phi = np.radians(175.0 - 10.0 * np.arange(OPPONENT_SECTORS))
@@ -1018,12 +1030,14 @@ class SensorRacer(SensorDriver):
         kappa = 2.0 * math.sin(float(self.ang[self.front][j])) / max(float(f[j]), 1.0)  # the bend ahead [1/m, + left]
         v = max(float(st[self._i["speedX_kmh"]]) / 3.6, 0.0)
         d_free = float(np.max(r[self.centre]))  # straight ahead [m]
-        bend_near = d_free < v * v / (2.0 * (self.k.decel_per_mu or self.k.decel)) + q.bend_m  # (braking as on mu = 1)
+        brake_dist = v * v / (2.0 * (self.k.decel_per_mu or self.k.decel))  # [m] (braking as on mu = 1)
+        bend_near = d_free < brake_dist + q.bend_m
+        zone = q.abandon_m is not None and d_free < brake_dist + q.abandon_m  # near the braking point: no pass unfinished
         x, y = opp[seen] * self._cos[seen], opp[seen] * self._sin[seen]
         dy = y - 0.5 * kappa * x * x
         tp_o = tp + dy / w
         near = (x > -(q.rear_m + q.clear_m)) & (x < q.look_m) & (np.abs(dy) < 2.0 * q.lane_m)
-        target = 0.0
+        target, drop = 0.0, False
         if near.any():
             ahead = near & (x > 0.0)
             pick = ahead if ahead.any() else near
@@ -1040,13 +1054,16 @@ class SensorRacer(SensorDriver):
             committed = abs(dy[i]) > 1.5  # already beside it: finish the pass; else start one only where the road is straight
             keep = q.keep_side and committed  # beside it, the other side's line crosses its path
             aim = next((a for a in (sides[:1] if keep else sides) if free(a)), None)
-            if aim is not None and (committed or (abs(kappa) * q.pass_radius_m < 1.0 and not bend_near)):
+            if zone and committed and float(x[i]) > -q.length_m:  # not clear of it by a car length: give the pass up
+                target = max(-q.tp_max, min(q.tp_max, tp))
+                drop = float(x[i]) > 0.0  # its centre ahead of ours: brake, let it into the bend first
+            elif aim is not None and (committed or (abs(kappa) * q.pass_radius_m < 1.0 and not bend_near and not zone)):
                 xi = float(x[i])
                 wt = (q.look_m - xi) / (q.look_m - q.full_m) if xi >= 0.0 else (xi + q.clear_m + q.rear_m) / q.rear_m
                 target = min(1.0, max(0.0, wt)) * aim
             elif keep or (q.hold_lane and (np.abs(x[near]) < q.full_m).any()):  # no room: keep the lane it is in
                 target = max(-q.tp_max, min(q.tp_max, tp))
-        cap = 1.0
+        cap = -q.brake if drop else 1.0
         braking = braking or bend_near
         lift, brake = q.lift_m + q.lift_s * v, q.brake_m + q.brake_s * v  # [m]
         # near a bend a car ahead may turn in across the car's path: a wider corridor, and one alongside but a little
@@ -1143,11 +1160,12 @@ _RACER_VALUES = (("grip_exponent", "the grip exponent", lambda v: v >= 1.0, ">= 
 
 def racer_gains(name: str) -> dict[str, Any] | None:
     """The :class:`SensorRacer` gains of ``racer_safe[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>]]]]]`` (and
-    ``racer_clean[...]``, ``racer_keep[...]``): ``SensorRacer.BOLD`` / ``CLEAN`` / ``KEEP`` with ``grip_exponent`` gamma (default 2), where given
+    ``racer_clean[...]``, ``racer_keep[...]``, ``racer_yield[...]``): ``SensorRacer.BOLD`` / ``CLEAN`` / ``KEEP`` / ``YIELD`` with ``grip_exponent`` gamma (default 2), where given
     ``decel_per_mu`` [m/s^2 at mu 1; the default is ``SensorDriver.FAST``'s 9], ``fight_decel_per_mu`` (the rate while
     a car is within ``fight_m``) and ``fight_m`` [m, default 60] (:data:`_RACER_VALUES`); None for other names;
     :class:`PolicyError` (one line) for a bad value."""
-    for base, gains in (("racer_safe", SensorRacer.BOLD), ("racer_clean", SensorRacer.CLEAN), ("racer_keep", SensorRacer.KEEP)):
+    for base, gains in (("racer_safe", SensorRacer.BOLD), ("racer_clean", SensorRacer.CLEAN), ("racer_keep", SensorRacer.KEEP),
+                        ("racer_yield", SensorRacer.YIELD)):
         if name == base or name.startswith(base + ":"):
             form = f"{base}[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>]]]]], e.g. {base}:2 or {base}:1.27:8:9"
             parts = name.split(":")[1:]
