@@ -294,7 +294,7 @@ def test_racer_safe_takes_an_asphalt_braking_rate_and_a_rate_for_a_fight():
     assert wide.race.fight_m == 150.0 and pedal(wide, far) == pedal(load_policy("racer_safe:1.27"), far) > 0.0
     assert known_teacher("racer_safe:1.27:8:9") and make_teacher("racer_safe:1.27:8:9").race.fight_decel_per_mu == 9.0
     for bad, msg in (("racer_safe:1.5:0", r"in \(0, 12\]"), ("racer_safe:1.5:8:13", r"in \(0, 12\]"),
-                     ("racer_safe:1.5:8:9:60:5:1", "at most five"), ("racer_safe:1.5:8:9:250", r"in \(0, 200\]"),
+                     ("racer_safe:1.5:8:9:60:5:1:2", "at most six"), ("racer_safe:1.5:8:9:60:5:-1", r"in \[0, 200\] m"), ("racer_safe:1.5:8:9:250", r"in \(0, 200\]"),
                      ("racer_safe:1.5:8:9:60:40", r"room kept past a car passed must be in \[0, 30\]"),
                      ("racer_safe:1.5:fast", "must be a number")):
         with pytest.raises(PolicyError, match=msg):

@@ -118,9 +118,9 @@ REFERENCE_CAMERA_POLICY = Path(__file__).resolve().parent / "assets" / "referenc
 REFERENCE_RACER_POLICY = Path(__file__).resolve().parent / "assets" / "reference_racer.pt"
 #: Names of the built-in policies (anything else is a checkpoint path).
 BUILTIN_POLICIES = ("expert", "expert_centre", "heuristic", "sensor", "sensor_grip", "sensor_fast", "sensor_sight[:<metres>]",
-                    "sensor_fast_sight[:<metres>]", "racer", "racer_bold", "racer_safe[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>]]]]]", "racer_clean[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>]]]]]",
-                    "racer_keep[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>]]]]]",
-                    "racer_yield[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>]]]]]", "random", "reference", "reference-td3", "reference_camera", "reference_racer")
+                    "sensor_fast_sight[:<metres>]", "racer", "racer_bold", "racer_safe[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>[:<abandon m>]]]]]]", "racer_clean[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>[:<abandon m>]]]]]]",
+                    "racer_keep[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>[:<abandon m>]]]]]]",
+                    "racer_yield[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>[:<abandon m>]]]]]]", "random", "reference", "reference-td3", "reference_camera", "reference_racer")
 
 
 class PolicyError(ValueError):
@@ -1149,17 +1149,19 @@ def _sight_teacher(name: str, **keys: str) -> SensorDriver | None:
     return None
 
 
-#: The values of ``racer_safe:<gamma>:<decel>:<fight decel>:<fight m>:<clear m>``, in order: (SensorRacer keyword, what it is,
+#: The values of ``racer_safe:<gamma>:<decel>:<fight decel>:<fight m>:<clear m>:<abandon m>``, in order: (SensorRacer keyword, what it is,
 #: the test it must pass, the allowed range as the error says it).
 _RACER_VALUES = (("grip_exponent", "the grip exponent", lambda v: v >= 1.0, ">= 1 (1: braking in proportion to the grip)"),
                  ("decel_per_mu", "the braking rate", lambda v: 0.0 < v <= 12.0, "in (0, 12] m/s^2 at mu 1 (the default: 9)"),
                  ("fight_decel_per_mu", "the braking rate in a fight", lambda v: 0.0 < v <= 12.0, "in (0, 12] m/s^2 at mu 1"),
                  ("fight_m", "the fight distance", lambda v: 0.0 < v <= 200.0, "in (0, 200] m (the opponents sensor's range)"),
-                 ("clear_m", "the room kept past a car passed", lambda v: 0.0 <= v <= 30.0, "in [0, 30] m (the default: 0)"))
+                 ("clear_m", "the room kept past a car passed", lambda v: 0.0 <= v <= 30.0, "in [0, 30] m (the default: 0)"),
+                 ("abandon_m", "the distance before the braking point with no pass left unfinished", lambda v: 0.0 <= v <= 200.0,
+                  "in [0, 200] m (racer_yield's default: 30; none for the others)"))
 
 
 def racer_gains(name: str) -> dict[str, Any] | None:
-    """The :class:`SensorRacer` gains of ``racer_safe[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>]]]]]`` (and
+    """The :class:`SensorRacer` gains of ``racer_safe[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>[:<abandon m>]]]]]]`` (and
     ``racer_clean[...]``, ``racer_keep[...]``, ``racer_yield[...]``): ``SensorRacer.BOLD`` / ``CLEAN`` / ``KEEP`` / ``YIELD`` with ``grip_exponent`` gamma (default 2), where given
     ``decel_per_mu`` [m/s^2 at mu 1; the default is ``SensorDriver.FAST``'s 9], ``fight_decel_per_mu`` (the rate while
     a car is within ``fight_m``) and ``fight_m`` [m, default 60] (:data:`_RACER_VALUES`); None for other names;
@@ -1167,10 +1169,10 @@ def racer_gains(name: str) -> dict[str, Any] | None:
     for base, gains in (("racer_safe", SensorRacer.BOLD), ("racer_clean", SensorRacer.CLEAN), ("racer_keep", SensorRacer.KEEP),
                         ("racer_yield", SensorRacer.YIELD)):
         if name == base or name.startswith(base + ":"):
-            form = f"{base}[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>]]]]], e.g. {base}:2 or {base}:1.27:8:9"
+            form = f"{base}[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>[:<abandon m>]]]]]], e.g. {base}:2 or {base}:1.27:8:9"
             parts = name.split(":")[1:]
             if len(parts) > len(_RACER_VALUES):
-                raise PolicyError(f"{name!r}: at most five values after '{base}': {form}")
+                raise PolicyError(f"{name!r}: at most six values after '{base}': {form}")
             out = {**gains, "grip_exponent": SensorRacer.SAFE_GRIP_EXPONENT}
             for text, (key, what, ok, allowed) in zip(parts, _RACER_VALUES):
                 try:
