@@ -382,8 +382,8 @@ def test_yield_racer_completes_a_pass_before_the_braking_zone_or_gives_it_up():
     assert yld.traffic(r_bend, st, cases["half ahead"]) == (pytest.approx(0.25), 1.0)  # its lane, no lift
     assert yld.traffic(r_bend, st, cases["clear"]) == safe.traffic(r_bend, st, cases["clear"])
     assert safe.traffic(r_bend, st, cases["to pass"])[0] > 0.25 and yld.traffic(r_bend, st, cases["to pass"])[0] == 0.0
-    later = load_policy("racer_yield:1.27:8:9")
-    later.race.abandon_m = 20.0  # 50 m is beyond 25 + 20 m: not in the zone yet
+    later = load_policy("racer_yield:1.27:8:9:60:0:20")  # 50 m is beyond 25 + 20 m: not in the zone yet
+    assert later.race.abandon_m == 20.0 and load_policy("racer_safe:1.27:8:9:60:0:20").race.abandon_m == 20.0
     assert later.traffic(r_bend, st, cases["level"]) == safe.traffic(r_bend, st, cases["level"])
     with pytest.raises(ValueError, match="abandon_m"):
         type(yld)(abandon_m=-1.0)

@@ -36,6 +36,8 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from torcsrl.policies import RACER_SPECS
+
 __all__ = ["DemoError", "DemoPool", "make_demo_env", "mixed_sample", "privileged_target", "label_rollouts", "write_demos", "load_demos", "main"]
 
 META = "demos.json"
@@ -45,10 +47,8 @@ EXTRA_KEYS = ("expert_action", "privileged")
 #: under the wheels ``info/surfaceMu``. A camera student regresses it as an auxiliary target (``algo.aux_privileged``).
 PRIVILEGED_SLOTS: tuple[str, ...] = tuple(f"track_{i}" for i in range(19)) + ("angle", "trackPos", "surfaceMu")
 #: Teachers that label demonstrations (:func:`make_teacher`).
-TEACHERS = ("expert", "expert_centre", "sensor", "sensor_grip", "sensor_fast", "racer", "racer_bold", "racer_safe[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>[:<abandon m>]]]]]]",
-            "racer_clean[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>[:<abandon m>]]]]]]",
-            "racer_keep[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>[:<abandon m>]]]]]]",
-            "racer_yield[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>[:<abandon m>]]]]]]", "sensor_sight[:<metres>]", "sensor_fast_sight[:<metres>]")
+TEACHERS = ("expert", "expert_centre", "sensor", "sensor_grip", "sensor_fast", "racer", "racer_bold", *RACER_SPECS,
+            "sensor_sight[:<metres>]", "sensor_fast_sight[:<metres>]")
 
 
 def known_teacher(name: str) -> bool:

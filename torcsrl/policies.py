@@ -116,11 +116,14 @@ REFERENCE_RL_POLICY = Path(__file__).resolve().parent / "assets" / "reference_td
 REFERENCE_CAMERA_POLICY = Path(__file__).resolve().parent / "assets" / "reference_camera.pt"
 #: The shipped racing driver, ``reference_racer`` (``reference_racer.md``: command, selection, figures).
 REFERENCE_RACER_POLICY = Path(__file__).resolve().parent / "assets" / "reference_racer.pt"
+#: The values a parametrised racer teacher takes (:data:`_RACER_VALUES`, all optional, in order).
+RACER_VALUES_FORM = "[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>[:<abandon m>]]]]]]"
+#: The parametrised racer teachers (:func:`racer_gains`) as listed in :data:`BUILTIN_POLICIES` and ``demos.TEACHERS``.
+RACER_SPECS = tuple(f"{base}{RACER_VALUES_FORM}" for base in ("racer_safe", "racer_clean", "racer_keep", "racer_yield"))
 #: Names of the built-in policies (anything else is a checkpoint path).
 BUILTIN_POLICIES = ("expert", "expert_centre", "heuristic", "sensor", "sensor_grip", "sensor_fast", "sensor_sight[:<metres>]",
-                    "sensor_fast_sight[:<metres>]", "racer", "racer_bold", "racer_safe[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>[:<abandon m>]]]]]]", "racer_clean[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>[:<abandon m>]]]]]]",
-                    "racer_keep[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>[:<abandon m>]]]]]]",
-                    "racer_yield[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>[:<abandon m>]]]]]]", "random", "reference", "reference-td3", "reference_camera", "reference_racer")
+                    "sensor_fast_sight[:<metres>]", "racer", "racer_bold", *RACER_SPECS, "random", "reference", "reference-td3",
+                    "reference_camera", "reference_racer")
 
 
 class PolicyError(ValueError):
@@ -1161,7 +1164,7 @@ _RACER_VALUES = (("grip_exponent", "the grip exponent", lambda v: v >= 1.0, ">= 
 
 
 def racer_gains(name: str) -> dict[str, Any] | None:
-    """The :class:`SensorRacer` gains of ``racer_safe[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>[:<abandon m>]]]]]]`` (and
+    """The :class:`SensorRacer` gains of ``racer_safe`` + :data:`RACER_VALUES_FORM` (and
     ``racer_clean[...]``, ``racer_keep[...]``, ``racer_yield[...]``): ``SensorRacer.BOLD`` / ``CLEAN`` / ``KEEP`` / ``YIELD`` with ``grip_exponent`` gamma (default 2), where given
     ``decel_per_mu`` [m/s^2 at mu 1; the default is ``SensorDriver.FAST``'s 9], ``fight_decel_per_mu`` (the rate while
     a car is within ``fight_m``) and ``fight_m`` [m, default 60] (:data:`_RACER_VALUES`); None for other names;
@@ -1169,7 +1172,7 @@ def racer_gains(name: str) -> dict[str, Any] | None:
     for base, gains in (("racer_safe", SensorRacer.BOLD), ("racer_clean", SensorRacer.CLEAN), ("racer_keep", SensorRacer.KEEP),
                         ("racer_yield", SensorRacer.YIELD)):
         if name == base or name.startswith(base + ":"):
-            form = f"{base}[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>[:<abandon m>]]]]]], e.g. {base}:2 or {base}:1.27:8:9"
+            form = f"{base}{RACER_VALUES_FORM}, e.g. {base}:2 or {base}:1.27:8:9"
             parts = name.split(":")[1:]
             if len(parts) > len(_RACER_VALUES):
                 raise PolicyError(f"{name!r}: at most six values after '{base}': {form}")
