@@ -121,6 +121,34 @@ def test_a_guarded_ensemble_guards_each_row_by_its_own_opponents_as_the_one_car_
     assert torch.equal(rows[[0, 1, 2, 5]], medoid[[0, 1, 2, 5]]) and not torch.equal(rows[3:5], medoid[3:5])
 
 
+def test_a_side_guard_corrects_each_row_by_its_own_opponents_as_the_one_car_guard():
+    """``side_guard:reference_racer``: batched (the medoid's members row for row, then the guard row-wise), each row's
+    steering is corrected only where that row sees a car beside it — what the one-car guard does, to the bit."""
+    from torcsrl.evaluate.batched import GuardRowActor
+
+    spec = "side_guard:reference_racer"
+    pol = load_policy(spec)
+    assert supports_batch(pol) and isinstance(row_actor(pol), GuardRowActor)
+    env = make_env(track="oval", sensors=pol.env_overrides["sensors"], control_hz=10, substeps=20)
+    try:  # 6 rows of one real observation (the shipped racer 4 s into a lap alone), each with its own opponents
+        td = env.reset()
+        for _ in range(40):
+            td = env.step(pol(td))["next"]
+    finally:
+        env.close()
+    obs = {k: td[k].expand(6, *td[k].shape).clone() for k in pol.obs_keys}
+    obs["opponents"][:] = 200.0
+    obs["opponents"][3, 9] = 2.0  # row 3: a car beside on the left; row 4: on the right; row 5: 12 m ahead
+    obs["opponents"][4, 26] = 2.2
+    obs["opponents"][5, 18] = 12.0
+    rows = row_actor(pol)(obs)
+    one = torch.stack([load_policy(spec)(TensorDict({k: v[i] for k, v in obs.items()}, []))["action"] for i in range(6)])
+    assert torch.equal(rows, one)
+    bare = row_actor(load_policy("reference_racer"))(obs)
+    assert torch.equal(rows[[0, 1, 2, 5]], bare[[0, 1, 2, 5]])  # nobody beside: the medoid's own action
+    assert rows[3, 0] < bare[3, 0] and rows[4, 0] > bare[4, 0] and torch.equal(rows[3:5, 1], bare[3:5, 1])
+
+
 @pytest.mark.parametrize("start,max_cars", [("grid", None), ("random", None), ("random", 4)])
 def test_batched_cells_equal_the_one_car_path(start, max_cars):
     """Clean, step noise, episode faults, a temporal fault and a weather preset; 2 episodes each: 12 cars at once, or

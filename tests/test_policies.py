@@ -17,6 +17,7 @@ from torcsrl.policies import (
     CheckpointPolicy,
     EnsemblePolicy,
     PolicyError,
+    SideGuard,
     export_ensemble,
     export_member,
     load_policy,
@@ -125,6 +126,89 @@ def test_a_guarded_racer_is_the_medoid_alone_and_brakes_with_its_most_cautious_s
     assert out[1] == acts[:, 1].min() and out[0] == medoid[0]
     assert acts[:, 1].min() < medoid[1]  # the students disagree about the pedal here: the guard changes the command
     assert torch.equal(first_action(f"{spec}@guarded:5", close), medoid)  # a 5-m guard: that car is not close
+
+
+def _guard_scene(steer, tp=0.0, **cars):
+    """One row: an action (steer, pedal 0.5), the opponents sectors (``s<k>=distance``, the rest free) and trackPos."""
+    opp = torch.full((1, 36), 200.0)
+    for k, d in cars.items():
+        opp[0, int(k[1:])] = d
+    return torch.tensor([[steer, 0.5]]), opp, torch.tensor([tp])
+
+
+def test_side_guard_steers_away_from_a_car_beside_and_leaves_every_other_command_alone():
+    """Hand-placed cars around a racer (racer_safe reads opponents and state): sector 9 is 85 degrees left of the
+    heading, sector 26 85 degrees right; a car 2.0 m to the side is 0.6 m inside the default 2.6 m of room."""
+    import math
+
+    guard = load_policy("side_guard:racer_safe:1.27:8:9")
+    assert isinstance(guard, SideGuard) and guard.settings == SideGuard.DEFAULTS and guard.inner.spec == "racer_safe:1.27:8:9"
+    r2 = 2.0 / math.sin(math.radians(85.0))  # 2.0 m to the side, 0.17 m ahead: beside
+    push = 0.04 * 0.6  # gain_per_m x the shortfall
+    for steer in (0.3, -0.2, 0.0):
+        a, opp, tp = _guard_scene(steer)
+        assert torch.equal(guard.correct(a, opp, tp), a)  # alone: the policy's own action
+        for far in ({"s9": 8.0 / math.sin(math.radians(85.0))}, {"s17": 6.0}, {"s0": 9.0}):  # 8 m to the side; 6 m ahead; 9 m behind
+            a, opp, tp = _guard_scene(steer, **far)
+            assert torch.equal(guard.correct(a, opp, tp), a), far
+    a, opp, tp = _guard_scene(0.3, s9=r2)  # steering left, toward the car on the left: halved, then pushed right
+    out = guard.correct(a, opp, tp)
+    assert out[0, 0].item() == pytest.approx(0.15 - push, abs=1e-5) and out[0, 1] == a[0, 1]  # the pedal is the policy's
+    a, opp, tp = _guard_scene(-0.2, s9=r2)  # already steering away: pushed further
+    assert guard.correct(a, opp, tp)[0, 0].item() == pytest.approx(-0.2 - push, abs=1e-5)
+    a, opp, tp = _guard_scene(-0.3, s26=r2)  # mirrored: a car on the right, steering toward it
+    assert guard.correct(a, opp, tp)[0, 0].item() == pytest.approx(-0.15 + push, abs=1e-5)
+    a, opp, tp = _guard_scene(0.3, tp=-0.8, s9=r2)  # already 0.8 out to the right: no push off the road, still halved
+    assert guard.correct(a, opp, tp)[0, 0].item() == pytest.approx(0.15, abs=1e-6)
+    behind = 2.0 / math.sin(math.radians(135.0))  # sector 4 (135 deg left): 2.0 m left, 2.0 m behind (the car it passed)
+    a, opp, tp = _guard_scene(0.3, s4=behind, s26=4.0)  # the nearer car to the side decides: the one on the left
+    assert guard.correct(a, opp, tp)[0, 0].item() == pytest.approx(0.15 - push, abs=1e-5)
+    rows = torch.cat([_guard_scene(0.3)[0], _guard_scene(0.3, s9=r2)[0]]), torch.cat([_guard_scene(0.3)[1], _guard_scene(0.3, s9=r2)[1]])
+    out = guard.correct(rows[0], rows[1], torch.zeros(2))  # a batch: only the row with a car beside changes
+    assert out[0, 0] == 0.3 and out[1, 0].item() == pytest.approx(0.15 - push, abs=1e-5)
+
+
+def test_side_guard_specs_and_settings_fail_in_one_line():
+    g = load_policy("side_guard:3:0.05:0.6:racer_safe:1.27:8:9")
+    assert g.settings == {**SideGuard.DEFAULTS, "clear_m": 3.0, "gain_per_m": 0.05, "edge_tp": 0.6}
+    assert load_policy("side_guard:3:racer_safe").settings["clear_m"] == 3.0 and load_policy("side_guard:3:racer_safe").inner.spec == "racer_safe"
+    for bad, match in (("side_guard:", "names no policy"), ("side_guard:2.6:", "names no policy"),
+                       ("side_guard:expert", "reads opponents, which that policy does not"),
+                       ("side_guard:-1:racer_safe", "out of range"), ("side_guard:2.6:0.04:1.5:racer_safe", "out of range"),
+                       ("side_guard:side_guard:racer_safe", "already guarded"),
+                       ("side_guard:racer_safe:fast", "racer_safe")):
+        with pytest.raises(PolicyError, match=match) as err:
+            load_policy(bad)
+        assert "\n" not in str(err.value), bad
+
+
+def test_a_guarded_ensemble_file_drives_as_its_guard_spec(tmp_path, capsys):
+    """The shipped racer's students exported with a side guard: one file that loads as the guard around the medoid,
+    its settings kept, and drives as the ``side_guard:...`` spec of the same students; bad settings fail in one line."""
+    from torcsrl.policies import main
+
+    members = [str(export_member(REFERENCE_RACER_POLICY, i, tmp_path / f"m{i}.pt")) for i in range(2)]
+    out = tmp_path / "guarded.pt"
+    assert main(["ensemble", str(out), *members, "--reduce", "medoid", "--side-guard", "3:0.05"]) == 0
+    pol = load_policy(out)
+    assert isinstance(pol, SideGuard) and pol.inner.reduce == "medoid" and len(pol.inner.members) == 2
+    assert pol.settings == {**SideGuard.DEFAULTS, "clear_m": 3.0, "gain_per_m": 0.05}
+    spec = load_policy(f"side_guard:3:0.05:{'+'.join(members)}@medoid")
+    td = {"rangefinder": torch.full((1, 19), 30.0), "state": torch.zeros(1, 11), "opponents": torch.full((1, 36), 200.0)}
+    td["state"][0, 2] = 120.0  # 120 km/h
+    td["opponents"][0, 9] = 2.0  # a car beside, on the left
+    from tensordict import TensorDict
+
+    a, b = pol(TensorDict(td, batch_size=[1]))["action"], spec(TensorDict(td, batch_size=[1]))["action"]
+    assert torch.equal(a, b)
+    bare = load_policy(f"{'+'.join(members)}@medoid")(TensorDict(td, batch_size=[1]))["action"]
+    assert a[0, 0] < bare[0, 0] and a[0, 1] == bare[0, 1]  # steered right, away from it; the pedal unchanged
+    assert main(["ensemble", str(tmp_path / "x.pt"), *members, "--side-guard", "wide"]) == 2 and not (tmp_path / "x.pt").exists()
+    assert "not <clear m>[:<gain per m>[:<edge tp>]]" in capsys.readouterr().err
+    with pytest.raises(PolicyError, match="out of range"):
+        export_ensemble(members, tmp_path / "y.pt", reduce="medoid", guard={"clear_m": -2.0})
+    with pytest.raises(PolicyError, match="reads opponents"):
+        export_ensemble([A, B], tmp_path / "z.pt", guard={"clear_m": 2.6})
 
 
 def test_an_ensemble_file_drives_as_its_spec(tmp_path, states):

@@ -52,6 +52,10 @@ spec                          policy
                               (the medoid, with the most cautious pedal while a car is within
                               m metres ahead); an ensemble file written by
                               :func:`export_ensemble` loads the same way
+``side_guard[:<c>[:<g>[:<e>]]]:<spec>``  :class:`SideGuard`: a racer (any spec that reads opponents
+                              and state) whose steering keeps ``c`` m (2.6) of lateral room from a
+                              car beside it: steering toward it halved, ``g`` (0.04) per metre short
+                              steered away, never beyond trackPos ``e`` (0.75); nothing else changed
 ============================  =================================================================
 
 Each policy says which observation keys it reads (``obs_keys``) and which env settings it needs
@@ -93,6 +97,7 @@ __all__ = [
     "CheckpointPolicy",
     "ExpertPolicy",
     "SensorRacer",
+    "SideGuard",
     "HeuristicPolicy",
     "SensorDriver",
     "RandomPolicy",
@@ -123,7 +128,7 @@ RACER_SPECS = tuple(f"{base}{RACER_VALUES_FORM}" for base in ("racer_safe", "rac
 #: Names of the built-in policies (anything else is a checkpoint path).
 BUILTIN_POLICIES = ("expert", "expert_centre", "heuristic", "sensor", "sensor_grip", "sensor_fast", "sensor_sight[:<metres>]",
                     "sensor_fast_sight[:<metres>]", "racer", "racer_bold", *RACER_SPECS, "random", "reference", "reference-td3",
-                    "reference_camera", "reference_racer")
+                    "reference_camera", "reference_racer", "side_guard[:<clear m>[:<gain per m>[:<edge tp>]]]:<policy>")
 
 
 class PolicyError(ValueError):
@@ -534,13 +539,20 @@ class EnsemblePolicy(Policy):
         return {**super().describe(), "reduce": self.reduce, "members": [m.describe() for m in self.members]}
 
 
-def export_ensemble(checkpoints: list[str | Path], out: str | Path, reduce: str = "mean") -> Path:
+def export_ensemble(checkpoints: list[str | Path], out: str | Path, reduce: str = "mean",
+                    guard: Mapping[str, float] | None = None) -> Path:
     """Write an ensemble of checkpoints' actors (each member's weights, meta and config; no optimiser, buffer or RNG
     state) to ONE policy file that :func:`load_policy` drives as :class:`EnsemblePolicy` (how a shipped driver can be
-    an ensemble). The members are checked as the spec ``a.pt+b.pt@reduce`` checks them."""
+    an ensemble). The members are checked as the spec ``a.pt+b.pt@reduce`` checks them. ``guard``: :class:`SideGuard`
+    settings (any of :attr:`SideGuard.DEFAULTS`; the rest default) the file drives behind."""
     from torcsrl.utils.checkpoint import save_checkpoint
 
     ens = EnsemblePolicy.from_spec("+".join(map(str, checkpoints)) + f"@{reduce}")  # the checks: 2+, one layout, a known reduce
+    if guard is not None:
+        unknown = set(guard) - set(SideGuard.DEFAULTS)
+        if unknown:
+            raise PolicyError(f"side guard settings {sorted(unknown)} are not known; allowed: {', '.join(SideGuard.DEFAULTS)}")
+        guard = SideGuard(ens, **{**SideGuard.DEFAULTS, **guard}).settings  # the checks: ranges, opponents and state read
     pols = ens.members
     members = []
     for pol in pols:
@@ -550,6 +562,8 @@ def export_ensemble(checkpoints: list[str | Path], out: str | Path, reduce: str 
     first = pols[0].meta
     meta = {"kind": "ensemble", "reduce": ens.reduce, "sources": [Path(p.path).name for p in pols],
             "algo": first.get("algo"), "obs_layout": first.get("obs_layout"), "action_dim": first.get("action_dim")}
+    if guard is not None:
+        meta["guard"] = dict(guard)
     return save_checkpoint(out, {"meta": meta, "members": members})
 
 
@@ -570,6 +584,138 @@ def export_member(ensemble: str | Path, index: int, out: str | Path) -> Path:
         raise PolicyError(f"{ensemble} has members 0..{len(members) - 1}; got {index}")
     m = members[int(index)]
     return save_checkpoint(out, {"meta": dict(m["meta"]), "actor": m["actor"], "config": m["config"]})
+
+
+class SideGuard(Policy):
+    """A racer's side guard: any policy that reads ``opponents`` and ``state``, with its steering corrected while the
+    opponents sensor shows a car *beside* it — the car's centre within ``reach_m`` ahead or behind along the heading
+    and less than ``clear_m`` to one side (sector k's centre ``175 - 10 k`` degrees counter-clockwise from the heading,
+    as :class:`SensorRacer` reads it). For the nearest such car (least lateral distance):
+
+    - steering toward it is scaled by ``toward`` (0: none, 1: unchanged);
+    - ``gain_per_m`` x the lateral shortfall under ``clear_m`` [m] is steered away from it — unless the car is already
+      ``edge_tp`` or more out on that side (``trackPos``, +1 the left edge), so the guard never pushes it off the road.
+
+    The pedal(s) stay the policy's. With no car beside, the action is the policy's own, bit for bit. It acts on the
+    contacts the race books count *alongside* and *behind* — a car level with it, or the one it has just passed, that
+    the racer's students close on sideways (the teacher aims at the road's centre where neither side of a car has room).
+
+    Specs: ``side_guard[:<clear m>[:<gain per m>[:<edge tp>]]]:<policy spec>`` (defaults :attr:`DEFAULTS`), e.g.
+    ``side_guard:reference_racer`` or ``side_guard:3:0.05:reference_racer``; an ensemble file exported with a guard
+    (``python -m torcsrl.policies ensemble ... --side-guard <clear m>[:<gain>[:<edge>]]``) loads as one."""
+
+    PREFIX = "side_guard"
+    #: The guard's settings unless a spec or file names them: lateral room kept [m], steering per metre short of it
+    #: [-/m], how far ahead or behind a car counts as beside [m], the factor on steering toward it, the trackPos
+    #: beyond which it does not push further out.
+    DEFAULTS = {"clear_m": 2.6, "gain_per_m": 0.04, "reach_m": 5.5, "toward": 0.5, "edge_tp": 0.75}
+    #: The values a spec may give, in order.
+    SPEC_VALUES = ("clear_m", "gain_per_m", "edge_tp")
+
+    def __init__(self, inner: Policy, clear_m: float = 2.6, gain_per_m: float = 0.04, reach_m: float = 5.5,
+                 toward: float = 0.5, edge_tp: float = 0.75, spec: str | None = None) -> None:
+        vals = {"clear_m": clear_m, "gain_per_m": gain_per_m, "reach_m": reach_m, "toward": toward, "edge_tp": edge_tp}
+        bad = {k: v for k, v in vals.items() if not (math.isfinite(float(v)) and float(v) >= 0.0)}
+        if bad or float(toward) > 1.0 or float(edge_tp) > 1.0:
+            raise PolicyError(f"side guard settings {vals} out of range; allowed: clear_m, gain_per_m, reach_m >= 0, "
+                              "toward and edge_tp in [0, 1]")
+        missing = [k for k in ("opponents", "state") if k not in inner.obs_keys]
+        if missing:
+            raise PolicyError(f"side guard around {inner.spec or inner.name!r}: it reads {', '.join(missing)}, which that "
+                              f"policy does not ({', '.join(inner.obs_keys) or 'no observation keys'}); allowed: racers "
+                              "that read opponents and state (e.g. reference_racer, racer_safe)")
+        if isinstance(inner, SideGuard):
+            raise PolicyError(f"side guard around {inner.spec!r}, which is already guarded; allowed: one guard")
+        self.inner = inner
+        self.settings = {k: float(v) for k, v in vals.items()}
+        self.obs_keys, self.action_dim = inner.obs_keys, inner.action_dim
+        self.obs_shapes = dict(getattr(inner, "obs_shapes", {}))
+        self.env_overrides = dict(inner.env_overrides)
+        self.name = f"{inner.name}+guard"
+        self.spec = spec or f"{self.PREFIX}:{self.settings['clear_m']:g}:{self.settings['gain_per_m']:g}:{self.settings['edge_tp']:g}:{inner.spec}"
+        self.fingerprint = hashlib.sha256(f"{inner.fingerprint}|{_code_fingerprint(SideGuard)}|{sorted(self.settings.items())}".encode()).hexdigest()
+        from torcsrl.envs.traffic import OPPONENT_RANGE_M, OPPONENT_SECTORS
+
+        phi = torch.deg2rad(175.0 - 10.0 * torch.arange(OPPONENT_SECTORS, dtype=torch.float64))
+        self._cos, self._sin = phi.cos().float(), phi.sin().float()
+        self._free = OPPONENT_RANGE_M - 1e-3
+        self._tp = _state_slot("trackPos")
+
+    @classmethod
+    def from_spec(cls, spec: str) -> SideGuard:
+        """``side_guard[:<clear m>[:<gain per m>[:<edge tp>]]]:<policy spec>``: the leading numbers are the settings,
+        the rest the policy guarded."""
+        rest = spec[len(cls.PREFIX) + 1:]
+        vals: dict[str, float] = {}
+        while len(vals) < len(cls.SPEC_VALUES):
+            head, sep, tail = rest.partition(":")
+            try:
+                v = float(head)
+            except ValueError:
+                break
+            if not sep:
+                break
+            vals[cls.SPEC_VALUES[len(vals)]] = v
+            rest = tail
+        if not rest:
+            raise PolicyError(f"side guard spec {spec!r} names no policy; allowed: "
+                              f"{cls.PREFIX}[:<clear m>[:<gain per m>[:<edge tp>]]]:<policy spec>, e.g. {cls.PREFIX}:reference_racer")
+        return cls(load_policy(rest), **{**cls.DEFAULTS, **vals}, spec=spec)
+
+    def reset(self, ctx: EpisodeContext) -> None:
+        self.inner.reset(ctx)
+
+    def forget_rows(self, rows: list[int]) -> None:
+        self.inner.forget_rows(rows)
+
+    def check_env(self, env) -> None:
+        self.inner.check_env(env)
+
+    def correct(self, action: torch.Tensor, opponents: torch.Tensor, track_pos: torch.Tensor) -> torch.Tensor:
+        """The guarded action from the policy's ``action [B, A]``, the ``opponents`` sectors ``[B, 36]`` [m] and
+        ``trackPos [B]``."""
+        g = self.settings
+        x, y = opponents * self._cos, opponents * self._sin  # ahead, left [m]
+        beside = (x.abs() < g["reach_m"]) & (y.abs() < g["clear_m"]) & (opponents < self._free)
+        rows = beside.any(-1)
+        if not bool(rows.any()):
+            return action
+        k = torch.where(beside, y.abs(), torch.full_like(y, math.inf)).argmin(-1, keepdim=True)
+        yk = y.gather(-1, k).squeeze(-1)
+        side = torch.sign(yk)  # +1: the car is on the left (steering + is left)
+        steer = action[..., 0]
+        guarded = torch.where(steer * side > 0, steer * g["toward"], steer)
+        room = track_pos * -side < g["edge_tp"]
+        shortfall = (g["clear_m"] - yk.abs()).clamp(min=0.0)
+        guarded = torch.where(room, guarded - side * g["gain_per_m"] * shortfall, guarded).clamp(-1.0, 1.0)
+        out = action.clone()
+        out[..., 0] = torch.where(rows, guarded, steer)
+        return out
+
+    def __call__(self, td: TensorDictBase) -> TensorDictBase:
+        opp = td.get("opponents")
+        opp = opp.reshape(-1, opp.shape[-1]).float().clone()
+        tp = td.get("state").reshape(opp.shape[0], -1)[:, self._tp].float().clone()  # read before the policy runs
+        td = self.inner(td)
+        act = td.get("action")
+        td.set("action", self.correct(act.reshape(opp.shape[0], -1), opp, tp).reshape(act.shape))
+        return td
+
+    def describe(self) -> dict[str, Any]:
+        return {**super().describe(), "guard": dict(self.settings), "inner": self.inner.describe()}
+
+
+def parse_guard_values(text: str) -> dict[str, float]:
+    """``"<clear m>[:<gain per m>[:<edge tp>]]"`` -> SideGuard settings (:attr:`SideGuard.SPEC_VALUES`);
+    :class:`PolicyError` (one line) if they are not 1-3 numbers."""
+    parts = str(text).split(":")
+    try:
+        vals = [float(v) for v in parts]
+    except ValueError:
+        vals = []
+    if not 1 <= len(vals) <= len(SideGuard.SPEC_VALUES) or len(vals) != len(parts):
+        raise PolicyError(f"side guard values {text!r} are not <clear m>[:<gain per m>[:<edge tp>]] (1 to 3 numbers, e.g. 2.6 or 3:0.05)")
+    return dict(zip(SideGuard.SPEC_VALUES, vals))
 
 
 def _checkpoint_file(s: str | Path, name: str | None = None) -> Policy:
@@ -596,8 +742,16 @@ def _checkpoint_file(s: str | Path, name: str | None = None) -> Policy:
         raise PolicyError(f"ensemble file {path} holds no members (expected 2 or more written by export_ensemble)")
     pols = [CheckpointPolicy(path.with_name(f"{path.stem}[{i}]"), payload=m, fingerprint=f"{ck['meta']['sha256']}:{i}")
             for i, m in enumerate(members)]
-    return EnsemblePolicy(pols, reduce=str(ck["meta"].get("reduce", "mean")), name=name or path.stem, spec=str(path),
-                          fingerprint=file_fingerprint(path))
+    ens = EnsemblePolicy(pols, reduce=str(ck["meta"].get("reduce", "mean")), name=name or path.stem, spec=str(path),
+                         fingerprint=file_fingerprint(path))
+    guard = ck["meta"].get("guard")
+    if guard is None:
+        return ens
+    if not isinstance(guard, Mapping) or set(guard) - set(SideGuard.DEFAULTS):
+        raise PolicyError(f"ensemble file {path} has a guard {guard!r} this version cannot read; allowed keys: {', '.join(SideGuard.DEFAULTS)}")
+    pol = SideGuard(ens, **{**SideGuard.DEFAULTS, **guard}, spec=str(path))
+    pol.name, pol.fingerprint = ens.name, ens.fingerprint  # the file is the driver: its name and bytes
+    return pol
 
 
 def export_policy(checkpoint: str | Path, out: str | Path) -> Path:
@@ -1201,6 +1355,8 @@ def load_policy(spec: str | Path | Policy) -> Policy:
     if isinstance(spec, Policy):
         return spec
     s = str(spec)
+    if s.startswith(SideGuard.PREFIX + ":") and not Path(s).exists():
+        return SideGuard.from_spec(s)
     if s == "expert":
         return ExpertPolicy()
     if s == "expert_centre":
@@ -1260,6 +1416,8 @@ def main(argv: list[str] | None = None) -> int:
     en.add_argument("out")
     en.add_argument("checkpoints", nargs="+")
     en.add_argument("--reduce", default="mean", help="mean, median, cautious, medoid or guarded[:<m>] (EnsemblePolicy)")
+    en.add_argument("--side-guard", default=None, metavar="CLEAR_M[:GAIN[:EDGE]]",
+                    help="drive the file behind a SideGuard with these settings (e.g. 2.6; defaults for the rest)")
     mb = sub.add_parser("member", help="write one member of an ensemble file as a one-actor policy file (e.g. for init.actor)")
     mb.add_argument("ensemble")
     mb.add_argument("index", type=int)
@@ -1272,8 +1430,11 @@ def main(argv: list[str] | None = None) -> int:
             out = export_policy(args.checkpoint, args.out)
             print(f"wrote {out} ({out.stat().st_size / 1024:.0f} KiB)")
         elif args.cmd == "ensemble":
-            out = export_ensemble(args.checkpoints, args.out, args.reduce)
-            print(f"wrote {out} ({out.stat().st_size / 1024:.0f} KiB): {len(args.checkpoints)} members, reduce={args.reduce}")
+            guard = None if args.side_guard is None else parse_guard_values(args.side_guard)
+            out = export_ensemble(args.checkpoints, args.out, args.reduce, guard=guard)
+            pol = load_policy(out)
+            print(f"wrote {out} ({out.stat().st_size / 1024:.0f} KiB): {len(args.checkpoints)} members, reduce={args.reduce}"
+                  + (f", side guard {pol.settings}" if isinstance(pol, SideGuard) else ""))
         elif args.cmd == "member":
             out = export_member(args.ensemble, args.index, args.out)
             print(f"wrote {out} ({out.stat().st_size / 1024:.0f} KiB): member {args.index} of {args.ensemble}")

@@ -67,7 +67,7 @@ from torcsrl.evaluate.protocol import (Degradation, EpisodeBook, default_max_ste
                                        seed_for)
 from torcsrl.policies import Policy
 
-__all__ = ["supports_batch", "row_linear", "RowActor", "EnsembleRowActor", "row_actor", "run_batch", "CARS_PER_WORLD"]
+__all__ = ["supports_batch", "row_linear", "RowActor", "EnsembleRowActor", "GuardRowActor", "row_actor", "run_batch", "CARS_PER_WORLD"]
 
 #: Cars per pybullet world of a batch (``RaceCore(cars_per_world=...)``): the cars of a grid drive the same line, and in
 #: one world the collision broadphase's cost of their overlapping boxes grows with the square of their number.
@@ -105,8 +105,10 @@ def supports_batch(policy: Policy) -> bool:
     (:class:`~torcsrl.nets.DeterministicActor`, with or without a grip head) on vector observations only, a
     ``state_history`` included (:class:`RowActor` keeps each row's readings and restarts them with its group)."""
     from torcsrl.nets import DeterministicActor
-    from torcsrl.policies import CheckpointPolicy, EnsemblePolicy
+    from torcsrl.policies import CheckpointPolicy, EnsemblePolicy, SideGuard
 
+    if isinstance(policy, SideGuard):  # a side guard around such a policy (or ensemble): its correction is row-wise
+        return type(policy).__call__ is SideGuard.__call__ and supports_batch(policy.inner)
     if isinstance(policy, EnsemblePolicy):  # an ensemble of such actors: each member batched, combined row for row
         return type(policy).__call__ is EnsemblePolicy.__call__ and all(supports_batch(m) for m in policy.members)
     return (isinstance(policy, CheckpointPolicy) and type(policy.actor) is DeterministicActor
@@ -202,10 +204,34 @@ class EnsembleRowActor:
         return EnsemblePolicy.combine(torch.stack([m(obs) for m in self.members]), self.reduce, self.policy.near_rows(obs))
 
 
-def row_actor(policy: Policy) -> RowActor | EnsembleRowActor:
-    """The batched actor of ``policy``: :class:`EnsembleRowActor` for an ensemble, else :class:`RowActor`."""
-    from torcsrl.policies import EnsemblePolicy
+class GuardRowActor:
+    """A :class:`~torcsrl.policies.SideGuard` on a batch: the guarded policy's batched actor, each row's steering
+    corrected by that row's own opponents and trackPos (:meth:`SideGuard.correct`, row-wise) — row for row what the
+    one-car guard does."""
 
+    def __init__(self, policy: Policy) -> None:
+        if not supports_batch(policy):
+            raise ValueError(f"policy {policy.name!r} ({type(policy).__name__}) cannot drive a batch")
+        from torcsrl.envs.sensors import STATE_SLOTS
+
+        self.policy, self.inner = policy, row_actor(policy.inner)
+        self._tp = STATE_SLOTS.index("trackPos")
+
+    def forget(self, rows: Sequence[int]) -> None:
+        self.inner.forget(rows)
+
+    @torch.no_grad()
+    def __call__(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        return self.policy.correct(self.inner(obs), obs["opponents"].float(), obs["state"][:, self._tp].float())
+
+
+def row_actor(policy: Policy) -> RowActor | EnsembleRowActor | GuardRowActor:
+    """The batched actor of ``policy``: :class:`GuardRowActor` for a side guard, :class:`EnsembleRowActor` for an
+    ensemble, else :class:`RowActor`."""
+    from torcsrl.policies import EnsemblePolicy, SideGuard
+
+    if isinstance(policy, SideGuard):
+        return GuardRowActor(policy)
     return EnsembleRowActor(policy) if isinstance(policy, EnsemblePolicy) else RowActor(policy)
 
 
