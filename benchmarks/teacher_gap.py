@@ -22,7 +22,8 @@ mode=race``: a grid, its order drawn from ``--seed``) while a racer teacher (``-
 and splits the gaps into the steps with a car within ``--near-m`` [m] (the nearest opponents sector) and the steps
 clear of one: a student that follows its teacher alone but not in a fight (or the reverse) shows it here. The table
 gains the nearest car's distance [m] (200: none in range). An ensemble file (``python -m torcsrl.policies ensemble``)
-is scored as it drives: its members' actions combined by its reduce, the grip estimate their mean.
+is scored as it drives: its members' actions combined by its reduce, the grip estimate their mean, and a side guard's
+correction applied to the clean opponents and trackPos readings (``--side-guard`` files: the shipped racer).
 
     python benchmarks/teacher_gap.py RACER.pt --track esses --opponents 3 --teacher racer_safe:1.5 --steps 3000
 """
@@ -60,12 +61,15 @@ def main(argv: list[str] | None = None) -> int:
     from torcsrl.demos import make_demo_env, make_teacher
     from torcsrl.envs.traffic import TrafficError, TrafficSpec
     from torcsrl.evaluate.race import race_traffic
-    from torcsrl.policies import CheckpointPolicy, EnsemblePolicy, EpisodeContext, PolicyError, load_policy
+    from torcsrl.policies import CheckpointPolicy, EnsemblePolicy, EpisodeContext, PolicyError, SideGuard, load_policy
 
     try:
         pol = load_policy(a.checkpoint)
     except PolicyError as err:
         ap.error(str(err))
+    guard = pol if isinstance(pol, SideGuard) else None  # a guarded file: the guard corrects what its students combine
+    if guard is not None:
+        pol = guard.inner
     members = list(pol.members) if isinstance(pol, EnsemblePolicy) else [pol]  # an ensemble file: its reduce combines
     if not all(isinstance(m, CheckpointPolicy) for m in members):
         ap.error(f"{a.checkpoint} is a built-in driver; teacher_gap scores a trained student (a checkpoint or policy file)")
@@ -100,6 +104,9 @@ def main(argv: list[str] | None = None) -> int:
                 obs = [td.get(k) for k in pol.obs_keys]
                 acts = torch.stack([m.actor(*obs).reshape(label.shape) for m in members])  # the actors, not pol(td)
                 act = acts[0] if reduce is None else EnsemblePolicy.combine(acts, reduce)
+                if guard is not None:  # it reads metres and trackPos: the env's readings before the run's pipeline
+                    opp_m, st_raw = (td.get(f"{k}_clean").reshape(1, -1).float() for k in ("opponents", "state"))
+                    act = guard.correct(act.reshape(1, -1), opp_m, st_raw[:, guard.tp_slot]).reshape(label.shape)
                 mu_hat = (sum(float(m.actor.grip(m.actor.encoder(*obs))) for m in members) / len(members)) if grip else float("nan")
             td.set("action", act if a.driver == "student" else label)
             st = td.get("state_clean")

@@ -50,10 +50,10 @@ def test_row_actor_equals_the_one_car_policy_row_for_row():
 def test_row_actor_keeps_each_rows_history_and_grip_estimate_as_the_one_car_policy():
     """The shipped racer keeps 3 s of its state (state_history=30), estimates the grip from it and drives on the newest
     1 s: a batch of 5 rows, two of which restart mid-way, gives each row the actions of its own one-car policy."""
-    pol = load_policy("reference_racer").members[0]  # the shipped racer is a medoid ensemble of four such students
+    pol = load_policy("reference_racer").inner.members[0]  # the shipped racer: a medoid of four such students, guarded
     assert pol.state_history > 1 and pol.actor.grip_head is not None and pol.actor._selects and supports_batch(pol)
     g = torch.Generator().manual_seed(0)
-    batch, ones = RowActor(pol), [load_policy("reference_racer").members[0] for _ in range(5)]
+    batch, ones = RowActor(pol), [load_policy("reference_racer").inner.members[0] for _ in range(5)]
     for t in range(8):
         obs = {k: torch.rand(5, *s, generator=g) * 60 for k, s in pol.obs_shapes.items()}
         if t == 5:  # rows 1 and 3 start new episodes
@@ -73,7 +73,7 @@ def test_row_actor_keeps_each_rows_history_and_grip_estimate_as_the_one_car_poli
 def test_a_stateful_racer_drives_batched_cells_as_one_car_at_a_time():
     """A student of reference_racer (history + grip head) in groups of 2 cars that restart for the next cell: the
     one-car rows."""
-    pol = load_policy("reference_racer").members[0]
+    pol = load_policy("reference_racer").inner.members[0]
     degs = [None, "state.noise@3", "rangefinder.dropout@2"]
     kw = dict(episodes=2, laps=1, seed=5, max_steps=60, env_kwargs={"start": "random"})
     batched = run_batch(pol, "rallycross", None, degs, max_cars=2, **kw)
@@ -84,9 +84,13 @@ def test_a_stateful_racer_drives_batched_cells_as_one_car_at_a_time():
 
 
 def test_the_shipped_racer_an_ensemble_drives_batched_cells_as_one_car_at_a_time():
-    """reference_racer is a medoid ensemble of four stateful students: each member batched row for row, combined per row."""
+    """reference_racer is a medoid ensemble of four stateful students behind a side guard: each member batched row for
+    row, combined per row, the guard per row."""
+    from torcsrl.evaluate.batched import GuardRowActor
+
     pol = load_policy("reference_racer")
-    assert isinstance(pol, EnsemblePolicy) and supports_batch(pol) and isinstance(row_actor(pol), EnsembleRowActor)
+    assert isinstance(pol.inner, EnsemblePolicy) and supports_batch(pol) and isinstance(row_actor(pol), GuardRowActor)
+    assert isinstance(row_actor(pol).inner, EnsembleRowActor)
     degs = [None, "state.noise@3"]
     kw = dict(episodes=2, laps=1, seed=5, max_steps=50, env_kwargs={"start": "random"})
     batched = run_batch(pol, "rallycross", None, degs, max_cars=2, **kw)
@@ -121,12 +125,15 @@ def test_a_guarded_ensemble_guards_each_row_by_its_own_opponents_as_the_one_car_
     assert torch.equal(rows[[0, 1, 2, 5]], medoid[[0, 1, 2, 5]]) and not torch.equal(rows[3:5], medoid[3:5])
 
 
-def test_a_side_guard_corrects_each_row_by_its_own_opponents_as_the_one_car_guard():
-    """``side_guard:reference_racer``: batched (the medoid's members row for row, then the guard row-wise), each row's
-    steering is corrected only where that row sees a car beside it — what the one-car guard does, to the bit."""
+def test_a_side_guard_corrects_each_row_by_its_own_opponents_as_the_one_car_guard(tmp_path):
+    """The shipped racer (its four students' medoid behind a side guard) and the same as a ``side_guard:`` spec:
+    batched (the members row for row, then the guard row-wise), each row's steering is corrected only where that row
+    sees a car beside it — what the one-car guard does, to the bit."""
     from torcsrl.evaluate.batched import GuardRowActor
+    from torcsrl.policies import REFERENCE_RACER_POLICY, export_member
 
-    spec = "side_guard:reference_racer"
+    medoid = "+".join(str(export_member(REFERENCE_RACER_POLICY, i, tmp_path / f"m{i}.pt")) for i in range(4)) + "@medoid"
+    spec = f"side_guard:{medoid}"
     pol = load_policy(spec)
     assert supports_batch(pol) and isinstance(row_actor(pol), GuardRowActor)
     env = make_env(track="oval", sensors=pol.env_overrides["sensors"], control_hz=10, substeps=20)
@@ -144,7 +151,8 @@ def test_a_side_guard_corrects_each_row_by_its_own_opponents_as_the_one_car_guar
     rows = row_actor(pol)(obs)
     one = torch.stack([load_policy(spec)(TensorDict({k: v[i] for k, v in obs.items()}, []))["action"] for i in range(6)])
     assert torch.equal(rows, one)
-    bare = row_actor(load_policy("reference_racer"))(obs)
+    assert torch.equal(row_actor(load_policy("reference_racer"))(obs), rows)  # the shipped file: the same driver
+    bare = row_actor(load_policy(medoid))(obs)
     assert torch.equal(rows[[0, 1, 2, 5]], bare[[0, 1, 2, 5]])  # nobody beside: the medoid's own action
     assert rows[3, 0] < bare[3, 0] and rows[4, 0] > bare[4, 0] and torch.equal(rows[3:5, 1], bare[3:5, 1])
 

@@ -175,7 +175,7 @@ def test_side_guard_specs_and_settings_fail_in_one_line():
     for bad, match in (("side_guard:", "names no policy"), ("side_guard:2.6:", "names no policy"),
                        ("side_guard:expert", "reads opponents, which that policy does not"),
                        ("side_guard:-1:racer_safe", "out of range"), ("side_guard:2.6:0.04:1.5:racer_safe", "out of range"),
-                       ("side_guard:side_guard:racer_safe", "already guarded"),
+                       ("side_guard:side_guard:racer_safe", "already drives behind one"), ("side_guard:reference_racer", "already drives behind one"),
                        ("side_guard:racer_safe:fast", "racer_safe")):
         with pytest.raises(PolicyError, match=match) as err:
             load_policy(bad)
@@ -252,7 +252,7 @@ def test_ensemble_bad_input_fails_in_one_line(tmp_path):
         f"{racer}+{racer}@guarded:near": "the guard distance must be a number of metres",
         f"{racer}+{racer}@medoid:30": "reduce='medoid:30' is not known",
         f"{A}+{racer}": "must read the same observations",  # rangefinder + state against + opponents
-        f"{A}+{REFERENCE_RACER_POLICY}": "is itself an ensemble",  # the shipped racer is a 4-seed ensemble
+        f"{A}+{REFERENCE_RACER_POLICY}": "is itself a guarded ensemble",  # the shipped racer: 4 students behind a side guard
         f"{A}+{REFERENCE_CAMERA_POLICY}": "is itself an ensemble",  # the shipped camera driver is a 4-seed ensemble
         f"{A}+{tmp_path / 'nothing.pt'}": "neither a checkpoint file that exists",
     }
@@ -549,7 +549,8 @@ def test_the_shipped_racer_reads_the_race_sensors_and_laps_alone():
     racer = load_policy("reference_racer")
     assert REFERENCE_RACER_POLICY.is_file() and racer.obs_keys == ("rangefinder", "state", "opponents")
     assert racer.env_overrides["control_hz"] == 10
-    assert isinstance(racer, EnsemblePolicy) and racer.reduce == "medoid" and len(racer.members) == 4
+    assert isinstance(racer, SideGuard) and racer.settings == SideGuard.DEFAULTS  # the tenth version: a guarded medoid
+    assert isinstance(racer.inner, EnsemblePolicy) and racer.inner.reduce == "medoid" and len(racer.inner.members) == 4
     rows, _ = run_cell(racer, "oval", "asphalt", laps=1)  # no opponents: its sectors read free (200 m)
     assert rows[0]["success"] and rows[0]["off_track_events"] == 0
-    pol = racer.members[0]  # one student: its rows batched as one car each
+    pol = racer.inner.members[0]  # one student: its rows batched as one car each

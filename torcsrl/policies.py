@@ -13,7 +13,8 @@ spec                          policy
 ``reference``                 the shipped reference driver, :data:`REFERENCE_POLICY`
 ``reference-td3``             the shipped RL (TD3) driver, :data:`REFERENCE_RL_POLICY`
 ``reference_racer``           the shipped racing driver (rangefinder + state + opponents, asphalt and
-                              dirt; a medoid ensemble of four students), :data:`REFERENCE_RACER_POLICY`
+                              dirt; a medoid ensemble of four students behind a side guard),
+                              :data:`REFERENCE_RACER_POLICY`
 ``reference_camera``          the shipped camera-only driver (hood camera + telemetry),
                               :data:`REFERENCE_CAMERA_POLICY` (also ``reference-camera``)
 ``expert``                    the scripted expert (:mod:`torcsrl.envs.expert`: pure pursuit on
@@ -464,8 +465,10 @@ class EnsemblePolicy(Policy):
         files, _, reduce = spec.partition("@")
         members = [_checkpoint_file(x) for x in files.split("+")]
         for m in members:
-            if isinstance(m, EnsemblePolicy):
-                raise PolicyError(f"ensemble member {m.spec} is itself an ensemble; allowed: single checkpoints, run folders or policy files")
+            if isinstance(m, (EnsemblePolicy, SideGuard)):
+                what = "an ensemble" if isinstance(m, EnsemblePolicy) else "a guarded ensemble"
+                raise PolicyError(f"ensemble member {m.spec} is itself {what}; allowed: single checkpoints, run folders or policy files "
+                                  "(python -m torcsrl.policies member <file> <i> <out> writes one member)")
         return cls(members, reduce=reduce or "mean")
 
     def reset(self, ctx: EpisodeContext | None = None) -> None:
@@ -601,8 +604,9 @@ class SideGuard(Policy):
     the racer's students close on sideways (the teacher aims at the road's centre where neither side of a car has room).
 
     Specs: ``side_guard[:<clear m>[:<gain per m>[:<edge tp>]]]:<policy spec>`` (defaults :attr:`DEFAULTS`), e.g.
-    ``side_guard:reference_racer`` or ``side_guard:3:0.05:reference_racer``; an ensemble file exported with a guard
-    (``python -m torcsrl.policies ensemble ... --side-guard <clear m>[:<gain>[:<edge>]]``) loads as one."""
+    ``side_guard:racer_safe:1.27:8:9`` or ``side_guard:3:0.05:a.pt+b.pt@medoid``; an ensemble file exported with a
+    guard (``python -m torcsrl.policies ensemble ... --side-guard <clear m>[:<gain>[:<edge>]]``) loads as one: the
+    shipped ``reference_racer`` (the tenth version: its four students' medoid behind the default guard)."""
 
     PREFIX = "side_guard"
     #: The guard's settings unless a spec or file names them: lateral room kept [m], steering per metre short of it
@@ -625,7 +629,8 @@ class SideGuard(Policy):
                               f"policy does not ({', '.join(inner.obs_keys) or 'no observation keys'}); allowed: racers "
                               "that read opponents and state (e.g. reference_racer, racer_safe)")
         if isinstance(inner, SideGuard):
-            raise PolicyError(f"side guard around {inner.spec!r}, which is already guarded; allowed: one guard")
+            raise PolicyError(f"side guard around {inner.spec!r}, which already drives behind one; allowed: one guard "
+                              "(reference_racer has one: guard its students, python -m torcsrl.policies member ...)")
         self.inner = inner
         self.settings = {k: float(v) for k, v in vals.items()}
         self.obs_keys, self.action_dim = inner.obs_keys, inner.action_dim
@@ -639,7 +644,7 @@ class SideGuard(Policy):
         phi = torch.deg2rad(175.0 - 10.0 * torch.arange(OPPONENT_SECTORS, dtype=torch.float64))
         self._cos, self._sin = phi.cos().float(), phi.sin().float()
         self._free = OPPONENT_RANGE_M - 1e-3
-        self._tp = _state_slot("trackPos")
+        self.tp_slot = _state_slot("trackPos")  # trackPos in the state vector
 
     @classmethod
     def from_spec(cls, spec: str) -> SideGuard:
@@ -659,7 +664,7 @@ class SideGuard(Policy):
             rest = tail
         if not rest:
             raise PolicyError(f"side guard spec {spec!r} names no policy; allowed: "
-                              f"{cls.PREFIX}[:<clear m>[:<gain per m>[:<edge tp>]]]:<policy spec>, e.g. {cls.PREFIX}:reference_racer")
+                              f"{cls.PREFIX}[:<clear m>[:<gain per m>[:<edge tp>]]]:<policy spec>, e.g. {cls.PREFIX}:racer_safe:1.27:8:9")
         return cls(load_policy(rest), **{**cls.DEFAULTS, **vals}, spec=spec)
 
     def reset(self, ctx: EpisodeContext) -> None:
@@ -695,7 +700,7 @@ class SideGuard(Policy):
     def __call__(self, td: TensorDictBase) -> TensorDictBase:
         opp = td.get("opponents")
         opp = opp.reshape(-1, opp.shape[-1]).float().clone()
-        tp = td.get("state").reshape(opp.shape[0], -1)[:, self._tp].float().clone()  # read before the policy runs
+        tp = td.get("state").reshape(opp.shape[0], -1)[:, self.tp_slot].float().clone()  # read before the policy runs
         td = self.inner(td)
         act = td.get("action")
         td.set("action", self.correct(act.reshape(opp.shape[0], -1), opp, tp).reshape(act.shape))

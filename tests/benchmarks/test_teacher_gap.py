@@ -78,3 +78,21 @@ def test_an_ensemble_file_is_scored_as_it_drives(tmp_path, capsys):
         assert e.code == 2 and "is a built-in driver" in capsys.readouterr().err
     else:
         raise AssertionError("a built-in driver was scored")
+
+
+def test_a_guarded_file_is_scored_with_its_guard_and_alone_as_its_students(tmp_path, capsys):
+    """A side guard (the shipped racer's) corrects only beside a car: alone on the oval a guarded ensemble scores as the
+    same ensemble unguarded, to the digit; in a race it reads the opponents in metres (its students' scaling undone)."""
+    from torcsrl.policies import export_ensemble, export_member
+
+    b = _bench()
+    member = export_member(RACER, 0, tmp_path / "one.pt")
+    outs = []
+    for name, guard in (("bare", None), ("guarded", {"clear_m": 2.6})):
+        ens = export_ensemble([member, member], tmp_path / f"{name}.pt", reduce="medoid", guard=guard)
+        assert b.main([str(ens), "--track", "oval", "--teacher", "racer_safe:1.5", "--steps", "60"]) == 0
+        outs.append(capsys.readouterr().out)
+    gaps = [re.search(r"mean \|steer gap\| ([0-9.]+), mean \|pedal gap\| ([0-9.]+)", o).groups() for o in outs]
+    assert gaps[0] == gaps[1]
+    assert b.main([str(tmp_path / "guarded.pt"), "--track", "oval", "--teacher", "racer_safe:1.5", "--opponents", "3", "--steps", "80"]) == 0
+    assert re.search(r"race against 3 experts at pace 0.85: position [1-4] of 4", capsys.readouterr().out)

@@ -212,17 +212,14 @@ class GuardRowActor:
     def __init__(self, policy: Policy) -> None:
         if not supports_batch(policy):
             raise ValueError(f"policy {policy.name!r} ({type(policy).__name__}) cannot drive a batch")
-        from torcsrl.envs.sensors import STATE_SLOTS
-
         self.policy, self.inner = policy, row_actor(policy.inner)
-        self._tp = STATE_SLOTS.index("trackPos")
 
     def forget(self, rows: Sequence[int]) -> None:
         self.inner.forget(rows)
 
     @torch.no_grad()
     def __call__(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        return self.policy.correct(self.inner(obs), obs["opponents"].float(), obs["state"][:, self._tp].float())
+        return self.policy.correct(self.inner(obs), obs["opponents"].float(), obs["state"][:, self.policy.tp_slot].float())
 
 
 def row_actor(policy: Policy) -> RowActor | EnsembleRowActor | GuardRowActor:
