@@ -100,22 +100,29 @@ def test_the_shipped_racer_an_ensemble_drives_batched_cells_as_one_car_at_a_time
     assert not supports_batch(load_policy(f"{REFERENCE_CAMERA_POLICY}"))  # pixels: one car at a time
 
 
+def _racer_rows(n: int) -> dict[str, torch.Tensor]:
+    """``n`` rows of one real observation of the shipped racer (4 s into a lap of the oval alone), every opponents
+    sector free (200 m)."""
+    racer = load_policy("reference_racer")
+    env = make_env(track="oval", sensors=racer.env_overrides["sensors"], control_hz=10, substeps=20)
+    try:
+        td = env.reset()
+        for _ in range(40):
+            td = env.step(racer(td))["next"]
+    finally:
+        env.close()
+    obs = {k: td[k].expand(n, *td[k].shape).clone() for k in racer.obs_keys}
+    obs["opponents"][:] = 200.0
+    return obs
+
+
 def test_a_guarded_ensemble_guards_each_row_by_its_own_opponents_as_the_one_car_ensemble(tmp_path):
     """``@guarded``: each row's pedal is the most cautious member's only where that row sees a car close ahead."""
     from torcsrl.policies import REFERENCE_RACER_POLICY, export_member
 
     spec = "+".join(str(export_member(REFERENCE_RACER_POLICY, i, tmp_path / f"m{i}.pt")) for i in range(4)) + "@guarded:30"
     pol = load_policy(spec)
-    env = make_env(track="oval", sensors=pol.env_overrides["sensors"], control_hz=10, substeps=20)
-    try:  # 6 rows of one real observation (the shipped racer 4 s into a lap alone), each with its own opponents
-        td = env.reset()
-        racer = load_policy("reference_racer")
-        for _ in range(40):
-            td = env.step(racer(td))["next"]
-    finally:
-        env.close()
-    obs = {k: td[k].expand(6, *td[k].shape).clone() for k in pol.obs_keys}
-    obs["opponents"][:] = 200.0
+    obs = _racer_rows(6)  # each row with its own opponents
     obs["opponents"][3:, 18] = torch.tensor([12.0, 16.0, 45.0])  # rows 3-4: a car close ahead; row 5: 45 m ahead
     rows = row_actor(pol)(obs)
     one = torch.stack([load_policy(spec)(TensorDict({k: v[i] for k, v in obs.items()}, []))["action"] for i in range(6)])
@@ -136,15 +143,7 @@ def test_a_side_guard_corrects_each_row_by_its_own_opponents_as_the_one_car_guar
     spec = f"side_guard:{medoid}"
     pol = load_policy(spec)
     assert supports_batch(pol) and isinstance(row_actor(pol), GuardRowActor)
-    env = make_env(track="oval", sensors=pol.env_overrides["sensors"], control_hz=10, substeps=20)
-    try:  # 6 rows of one real observation (the shipped racer 4 s into a lap alone), each with its own opponents
-        td = env.reset()
-        for _ in range(40):
-            td = env.step(pol(td))["next"]
-    finally:
-        env.close()
-    obs = {k: td[k].expand(6, *td[k].shape).clone() for k in pol.obs_keys}
-    obs["opponents"][:] = 200.0
+    obs = _racer_rows(6)  # each row with its own opponents
     obs["opponents"][3, 9] = 2.0  # row 3: a car beside on the left; row 4: on the right; row 5: 12 m ahead
     obs["opponents"][4, 26] = 2.2
     obs["opponents"][5, 18] = 12.0
