@@ -207,6 +207,10 @@ def test_a_guarded_ensemble_file_drives_as_its_guard_spec(tmp_path, capsys):
     assert "not <clear m>[:<gain per m>[:<edge tp>]]" in capsys.readouterr().err
     with pytest.raises(PolicyError, match="out of range"):
         export_ensemble(members, tmp_path / "y.pt", reduce="medoid", guard={"clear_m": -2.0})
+    for guard in ({"wide_m": 3.0}, {"clear_m": "wide"}):  # an unknown setting; not a number
+        with pytest.raises(PolicyError, match="are not known numbers; allowed: clear_m, gain_per_m, reach_m, toward, edge_tp"):
+            export_ensemble(members, tmp_path / "y.pt", reduce="medoid", guard=guard)
+    assert not (tmp_path / "y.pt").exists()
     with pytest.raises(PolicyError, match="reads opponents"):
         export_ensemble([A, B], tmp_path / "z.pt", guard={"clear_m": 2.6})
 

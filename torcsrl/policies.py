@@ -552,10 +552,7 @@ def export_ensemble(checkpoints: list[str | Path], out: str | Path, reduce: str 
 
     ens = EnsemblePolicy.from_spec("+".join(map(str, checkpoints)) + f"@{reduce}")  # the checks: 2+, one layout, a known reduce
     if guard is not None:
-        unknown = set(guard) - set(SideGuard.DEFAULTS)
-        if unknown:
-            raise PolicyError(f"side guard settings {sorted(unknown)} are not known; allowed: {', '.join(SideGuard.DEFAULTS)}")
-        guard = SideGuard(ens, **{**SideGuard.DEFAULTS, **guard}).settings  # the checks: ranges, opponents and state read
+        guard = SideGuard.from_settings(ens, guard).settings  # the checks: known keys, ranges, opponents and state read
     pols = ens.members
     members = []
     for pol in pols:
@@ -587,6 +584,16 @@ def export_member(ensemble: str | Path, index: int, out: str | Path) -> Path:
         raise PolicyError(f"{ensemble} has members 0..{len(members) - 1}; got {index}")
     m = members[int(index)]
     return save_checkpoint(out, {"meta": dict(m["meta"]), "actor": m["actor"], "config": m["config"]})
+
+
+def sector_directions() -> tuple[np.ndarray, np.ndarray]:
+    """``(cos, sin)`` ``[36]`` of the SCR opponents sectors' centres, ``175 - 10 k`` degrees counter-clockwise from the
+    heading (sector 0 straight back from the left, 9 left, 17/18 ahead, 27 right): a car a sector shows at ``r`` m sits
+    ``r cos`` ahead and ``r sin`` to the left. What :class:`SensorRacer` and :class:`SideGuard` read the sensor by."""
+    from torcsrl.envs.traffic import OPPONENT_SECTORS
+
+    phi = np.radians(175.0 - 10.0 * np.arange(OPPONENT_SECTORS))
+    return np.cos(phi), np.sin(phi)
 
 
 class SideGuard(Policy):
@@ -639,12 +646,28 @@ class SideGuard(Policy):
         self.name = f"{inner.name}+guard"
         self.spec = spec or f"{self.PREFIX}:{self.settings['clear_m']:g}:{self.settings['gain_per_m']:g}:{self.settings['edge_tp']:g}:{inner.spec}"
         self.fingerprint = hashlib.sha256(f"{inner.fingerprint}|{_code_fingerprint(SideGuard)}|{sorted(self.settings.items())}".encode()).hexdigest()
-        from torcsrl.envs.traffic import OPPONENT_RANGE_M, OPPONENT_SECTORS
+        from torcsrl.envs.traffic import OPPONENT_RANGE_M
 
-        phi = torch.deg2rad(175.0 - 10.0 * torch.arange(OPPONENT_SECTORS, dtype=torch.float64))
-        self._cos, self._sin = phi.cos().float(), phi.sin().float()
+        self._cos, self._sin = (torch.from_numpy(v).float() for v in sector_directions())
         self._free = OPPONENT_RANGE_M - 1e-3
+        self._near_m = math.hypot(self.settings["reach_m"], self.settings["clear_m"])  # no car beside is farther [m]
         self.tp_slot = _state_slot("trackPos")  # trackPos in the state vector
+
+    @classmethod
+    def from_settings(cls, inner: Policy, settings: Mapping[str, Any] | None = None, spec: str | None = None) -> SideGuard:
+        """The guard around ``inner`` with ``settings`` (any of :attr:`DEFAULTS`, the rest default): how a spec, the
+        CLI, :func:`export_ensemble` and a guarded file build one. :class:`PolicyError` (one line) for an unknown key or
+        a value that is not a number."""
+        settings = dict(settings or {})
+        unknown = sorted(set(settings) - set(cls.DEFAULTS))
+        try:
+            vals = {k: float(v) for k, v in settings.items()}
+        except (TypeError, ValueError):
+            vals = None
+        if unknown or vals is None:
+            raise PolicyError(f"side guard settings {settings!r} are not known numbers; allowed: {', '.join(cls.DEFAULTS)} "
+                              "(numbers; the rest default)")
+        return cls(inner, **{**cls.DEFAULTS, **vals}, spec=spec)
 
     @classmethod
     def from_spec(cls, spec: str) -> SideGuard:
@@ -665,7 +688,7 @@ class SideGuard(Policy):
         if not rest:
             raise PolicyError(f"side guard spec {spec!r} names no policy; allowed: "
                               f"{cls.PREFIX}[:<clear m>[:<gain per m>[:<edge tp>]]]:<policy spec>, e.g. {cls.PREFIX}:racer_safe:1.27:8:9")
-        return cls(load_policy(rest), **{**cls.DEFAULTS, **vals}, spec=spec)
+        return cls.from_settings(load_policy(rest), vals, spec=spec)
 
     def reset(self, ctx: EpisodeContext) -> None:
         self.inner.reset(ctx)
@@ -699,6 +722,8 @@ class SideGuard(Policy):
 
     def __call__(self, td: TensorDictBase) -> TensorDictBase:
         opp = td.get("opponents")
+        if not bool((opp < self._near_m).any()):  # no car within reach of beside on any row: the policy's own action
+            return self.inner(td)
         opp = opp.reshape(-1, opp.shape[-1]).float().clone()
         tp = td.get("state").reshape(opp.shape[0], -1)[:, self.tp_slot].float().clone()  # read before the policy runs
         td = self.inner(td)
@@ -752,9 +777,9 @@ def _checkpoint_file(s: str | Path, name: str | None = None) -> Policy:
     guard = ck["meta"].get("guard")
     if guard is None:
         return ens
-    if not isinstance(guard, Mapping) or set(guard) - set(SideGuard.DEFAULTS):
-        raise PolicyError(f"ensemble file {path} has a guard {guard!r} this version cannot read; allowed keys: {', '.join(SideGuard.DEFAULTS)}")
-    pol = SideGuard(ens, **{**SideGuard.DEFAULTS, **guard}, spec=str(path))
+    if not isinstance(guard, Mapping):
+        raise PolicyError(f"ensemble file {path} has a guard {guard!r} this version cannot read; allowed: a mapping of {', '.join(SideGuard.DEFAULTS)}")
+    pol = SideGuard.from_settings(ens, guard, spec=str(path))
     pol.name, pol.fingerprint = ens.name, ens.fingerprint  # the file is the driver: its name and bytes
     return pol
 
@@ -1147,7 +1172,7 @@ class SensorRacer(SensorDriver):
                  bend_m: float = 50.0, bend_lanes: float = 2.5, yield_alongside: bool = True, hold_lane: bool = False,
                  fight_decel_per_mu: float | None = None, fight_m: float = 60.0, clear_m: float = 0.0,
                  keep_side: bool = False, abandon_m: float | None = None, opponents_key: str = "opponents", **kw: Any) -> None:
-        from torcsrl.envs.traffic import OPPONENT_RANGE_M, OPPONENT_SECTORS
+        from torcsrl.envs.traffic import OPPONENT_RANGE_M
 
         if fight_decel_per_mu is not None and not (math.isfinite(float(fight_decel_per_mu)) and float(fight_decel_per_mu) > 0.0):
             raise ValueError(f"SensorRacer fight_decel_per_mu must be a positive rate [m/s^2 at mu 1], got {fight_decel_per_mu}")
@@ -1172,8 +1197,7 @@ class SensorRacer(SensorDriver):
                                     abandon_m=None if abandon_m is None else float(abandon_m))
         self.fingerprint = _code_fingerprint(SensorDriver, SensorRacer, repr(sorted(vars(self.k).items())),
                                              repr(sorted(vars(self.race).items())))
-        phi = np.radians(175.0 - 10.0 * np.arange(OPPONENT_SECTORS))
-        self._cos, self._sin = np.cos(phi), np.sin(phi)
+        self._cos, self._sin = sector_directions()
         self._free = OPPONENT_RANGE_M - 1e-3
         self._side = (int(np.argmin(self.ang)), int(np.argmax(self.ang)))  # the -90 (right) and +90 (left) beams
 
