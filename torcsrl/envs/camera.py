@@ -65,7 +65,7 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
-import pybullet as p
+from torcsrl.utils.bullet import pybullet as p
 
 from torcsrl.envs import surfaces as _surf
 from torcsrl.envs.world import (

@@ -37,7 +37,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-import pybullet as p
+from torcsrl.utils.bullet import pybullet as p
 from scipy import sparse
 from scipy.sparse.linalg import spsolve
 

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import pybullet as p
+from torcsrl.utils.bullet import pybullet as p
 
 from torcsrl.envs import tracks
 from torcsrl.envs.camera import MOUNTS, Camera, setup_renderer

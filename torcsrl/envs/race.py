@@ -20,7 +20,7 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-import pybullet as p
+from torcsrl.utils.bullet import pybullet as p
 from gymnasium import spaces
 from gymnasium.utils import EzPickle
 

@@ -32,7 +32,7 @@ import math
 from operator import itemgetter
 
 import numpy as np
-import pybullet as p
+from torcsrl.utils.bullet import pybullet as p
 
 #: TORCS/SCR default beam angles [deg], relative to the car's heading (positive = left).
 RANGEFINDER_ANGLES_DEG: tuple[float, ...] = (-90, -75, -60, -45, -30, -20, -15, -10, -5, 0,

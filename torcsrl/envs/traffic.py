@@ -56,7 +56,7 @@ from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
-import pybullet as p
+from torcsrl.utils.bullet import pybullet as p
 
 __all__ = ["OPPONENT_KINDS", "TrafficSpec", "DriverSpec", "TrafficError", "Traffic", "opponent_sectors",
            "OPPONENT_SECTORS", "OPPONENT_RANGE_M", "RACE_INFO_KEYS", "OPPONENT_OBS_KEYS"]

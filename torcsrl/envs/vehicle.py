@@ -82,7 +82,7 @@ from itertools import chain
 from typing import Any, NamedTuple
 
 import numpy as np
-import pybullet as p
+from torcsrl.utils.bullet import pybullet as p
 import yaml
 
 from torcsrl.envs.surfaces import MU, ROLLING_RESISTANCE, SURFACE_NAMES, surface_id

@@ -47,7 +47,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import pybullet as p
+from torcsrl.utils.bullet import pybullet as p
 
 from torcsrl.envs import surfaces as _surf
 from torcsrl.envs.track import Track
