@@ -1,6 +1,12 @@
 """Env throughput: torcsrl's faces beside the raw physics of the same car and installed peers.
 
-    python benchmarks/env_throughput.py [--steps 3000] [--quick] [--race]
+    python benchmarks/env_throughput.py [--steps 3000] [--quick] [--race] [--raw-only]
+
+The first table is the env against raw pybullet in the same run: ``gym.make("torcsrl/Race-v0")`` with its default
+arguments, uniform random actions, reset when an episode ends, beside pybullet's racecar URDF (pybullet_data, 50 Hz
+x 5 substeps of 240 Hz) with 19 ray tests of 200 m per step (``rayTestBatch``, the TORCS rangefinder's fan), in
+interleaved rounds (best of each). The ratio env / raw is printed step-only (reset time excluded) and with resets,
+with the mean reset cost; goal (issue 56): >= 2.0x. ``--raw-only`` prints just that table.
 
 One process, one thread, everything measured in the same run (ratios are what to compare; the
 machine is shared and absolute figures move). Observations: rangefinder + state. Peers are
@@ -20,6 +26,7 @@ batched race (N = 8 learners, each with its 3 opponents).
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import time
@@ -66,6 +73,118 @@ def raw_physics(n_cars: int, steps: int) -> float:
     r = _rate(step, steps) * n_cars
     p.disconnect(cid)
     return r
+
+
+RAYS = 19
+RAY_LEN_M = 200.0
+
+
+def make_raw_racecar():
+    """pybullet_data's racecar URDF driven by random actions, 19 rays of 200 m cast from it each step (a step function
+    returning False: the raw car never ends an episode)."""
+    import pybullet as p
+    import pybullet_data
+
+    cid = p.connect(p.DIRECT)
+    p.setAdditionalSearchPath(pybullet_data.getDataPath(), physicsClientId=cid)
+    p.setGravity(0, 0, -9.81, physicsClientId=cid)
+    p.setPhysicsEngineParameter(fixedTimeStep=1.0 / 240.0, numSubSteps=0, physicsClientId=cid)
+    p.loadURDF("plane.urdf", physicsClientId=cid)
+    car = p.loadURDF(os.path.join("racecar", "racecar.urdf"), [0, 0, 0.2], physicsClientId=cid)
+    wheels, steering = [2, 3, 5, 7], [4, 6]
+    angles = np.deg2rad(np.linspace(-90.0, 90.0, RAYS))
+    actions = np.random.default_rng(0).uniform(-1.0, 1.0, size=(4096, 2))
+    k = [0]
+
+    def step() -> bool:
+        a = actions[k[0] % 4096]
+        k[0] += 1
+        for w in wheels:
+            p.setJointMotorControl2(car, w, p.VELOCITY_CONTROL, targetVelocity=20.0 * (0.5 + 0.5 * a[0]), force=10.0,
+                                    physicsClientId=cid)
+        for s in steering:
+            p.setJointMotorControl2(car, s, p.POSITION_CONTROL, targetPosition=0.3 * a[1], physicsClientId=cid)
+        for _ in range(5):
+            p.stepSimulation(physicsClientId=cid)
+        (x, y, z), quat = p.getBasePositionAndOrientation(car, physicsClientId=cid)
+        p.getBaseVelocity(car, physicsClientId=cid)
+        yaw = p.getEulerFromQuaternion(quat)[2]
+        frm = [(x, y, z + 0.3)] * RAYS
+        to = [(x + RAY_LEN_M * math.cos(yaw + t), y + RAY_LEN_M * math.sin(yaw + t), z + 0.3) for t in angles]
+        p.rayTestBatch(frm, to, numThreads=1, physicsClientId=cid)
+        return False
+
+    return step, lambda: p.disconnect(cid)
+
+
+def make_default_gym_env():
+    """``gym.make("torcsrl/Race-v0")`` with its default arguments and uniform random actions (seeded); ``step()``
+    returns whether the episode ended, ``reset()`` starts the next one."""
+    import gymnasium as gym
+
+    import torcsrl.envs  # noqa: F401
+
+    env = gym.make("torcsrl/Race-v0")
+    env.reset(seed=0)
+    actions = np.random.default_rng(0).uniform(-1.0, 1.0, size=(4096, 2)).astype(np.float32)
+    k = [0]
+
+    def step() -> bool:
+        _, _, te, tr, _ = env.step(actions[k[0] % 4096])
+        k[0] += 1
+        return te or tr
+
+    return step, env.reset, env.close
+
+
+def _timed(step, n: int, reset=None) -> tuple[float, float, int]:
+    """(seconds in ``step``, seconds in ``reset``, resets) over ``n`` steps."""
+    t_step = t_reset = 0.0
+    resets = 0
+    clock = time.perf_counter
+    for _ in range(n):
+        t0 = clock()
+        done = step()
+        t1 = clock()
+        t_step += t1 - t0
+        if done and reset is not None:
+            reset()
+            t_reset += clock() - t1
+            resets += 1
+    return t_step, t_reset, resets
+
+
+def vs_raw(steps: int, rounds: int = 5) -> dict[str, float]:
+    """The env against the raw racecar + rays, interleaved rounds, best of each."""
+    raw_step, raw_close = make_raw_racecar()
+    env_step, env_reset, env_close = make_default_gym_env()
+    _timed(raw_step, 50)
+    _timed(env_step, 50, env_reset)
+    best = {"raw": 0.0, "env_step": 0.0, "env_all": 0.0}
+    reset_s, resets = 0.0, 0
+    for _ in range(rounds):
+        t, _, _ = _timed(raw_step, steps)
+        best["raw"] = max(best["raw"], steps / t)
+        t_step, t_reset, n_reset = _timed(env_step, steps, env_reset)
+        best["env_step"] = max(best["env_step"], steps / t_step)
+        best["env_all"] = max(best["env_all"], steps / (t_step + t_reset))
+        reset_s, resets = reset_s + t_reset, resets + n_reset
+    raw_close()
+    env_close()
+    best["reset_us"] = 1e6 * reset_s / resets if resets else float("nan")
+    best["resets"] = resets
+    return best
+
+
+def print_vs_raw(r: dict[str, float], steps: int, rounds: int) -> None:
+    print(f"\nenv vs raw pybullet, one thread, {rounds} interleaved rounds of {steps} steps (best of each)")
+    print(f"{'what':62s} {'steps/s':>9s}")
+    print(f"{'raw: pybullet racecar URDF (50 Hz x 5 x 240 Hz) + 19 rays':62s} {r['raw']:9.0f}")
+    print(f"{'torcsrl/Race-v0, defaults, random actions, step only':62s} {r['env_step']:9.0f}")
+    print(f"{'torcsrl/Race-v0, defaults, random actions, resets included':62s} {r['env_all']:9.0f}")
+    print(f"  ratio env / raw, step only:      {r['env_step'] / r['raw']:5.2f}x   (goal >= 2.0x)")
+    print(f"  ratio env / raw, resets included: {r['env_all'] / r['raw']:5.2f}x   (goal >= 2.0x)")
+    print(f"  reset: {r['reset_us']:.0f} us each ({int(r['resets'])} resets)")
 
 
 def gym_env(steps: int) -> float:
@@ -155,8 +274,15 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=3000, help="control steps per measurement")
     ap.add_argument("--quick", action="store_true", help="fewer steps and no peers (a smoke run)")
     ap.add_argument("--race", action="store_true", help="only the race comparison: 4-car race env vs the 1-car env")
+    ap.add_argument("--raw-only", action="store_true", help="only the table of the env against raw pybullet")
+    ap.add_argument("--rounds", type=int, default=5, help="interleaved rounds of the env-vs-raw table")
     args = ap.parse_args(argv)
     n = 300 if args.quick else args.steps
+    if not args.race:
+        rounds = 1 if args.quick else args.rounds
+        print_vs_raw(vs_raw(n, rounds), n, rounds)
+        if args.raw_only:
+            return 0
     if args.race:
         one = torchrl_env(1, n)
         race = torchrl_env(1, n, RACE)
