@@ -71,7 +71,7 @@ def screen(policies: list[str], tracks: list[str], *, episodes: int = 3, pace: t
     (how the collisions spread, and where the other car was: :func:`race_summary`);
     ``by_surface``: the same counts for each surface raced (``{surface: {"races", "finished", "wins",
     "collisions_per_race"}}``). ``surfaces``: race every track on each of them (None: each track on its own surface)."""
-    from torcsrl.evaluate.protocol import EvalError, validate_grid
+    from torcsrl.evaluate.spec import EvalError, validate_grid
     from torcsrl.evaluate.race import evaluate_race, race_summary
 
     try:

@@ -115,17 +115,17 @@ def test_ray_report_gives_the_local_metrics(tmp_path, capsys):
 
 def test_ctrl_c_cancels_the_ray_tasks_and_keeps_finished_cells(tmp_path, monkeypatch):
     ray = pytest.importorskip("ray")
-    import torcsrl.report.grid as grid
+    import torcsrl.report.runner as runner
 
     written = []
-    real = grid.write_json
+    real = runner.write_json
 
     def write_then_stop(record, path):
         real(record, path)
         written.append(path)
         raise KeyboardInterrupt  # Ctrl-C right after the first finished cell was cached
 
-    monkeypatch.setattr(grid, "write_json", write_then_stop)
+    monkeypatch.setattr(runner, "write_json", write_then_stop)
     with pytest.raises(KeyboardInterrupt):
         run_report(tiny(policies=["heuristic"], degradations=["rangefinder.dropout", "state.noise"], severities=[0, 1, 2, 3],
                         ray="local", workers=1), tmp_path, verbose=False)

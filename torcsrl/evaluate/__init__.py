@@ -25,20 +25,19 @@ Outputs (``out_dir``): ``evaluation.json`` (config, per-track summary, every epi
 Bookkeeping reads only the env's outputs: ``info`` (lap, lap times, distances) and the clean
 ``state`` (kept aside as ``state_clean`` before any degradation), never a degraded reading.
 
-The package: :mod:`~torcsrl.evaluate.protocol` (the episode protocol: seeds, step caps, lap
-accounting, termination reasons; one car), :mod:`~torcsrl.evaluate.batched` (many episodes as
-cars of one batched env, equal episode for episode to the one-car path),
+The package: :mod:`~torcsrl.evaluate.spec` (what an evaluation runs: the grid, degradations, seeds and step caps,
+checked before anything heavy loads), :mod:`~torcsrl.evaluate.protocol` (the episode protocol: lap accounting,
+termination reasons; one car), :mod:`~torcsrl.evaluate.batched` (many episodes as cars of one batched env, equal
+episode for episode to the one-car path), :mod:`~torcsrl.evaluate.trial` (time trials) and
+:mod:`~torcsrl.evaluate.race` (races), :mod:`~torcsrl.evaluate.workers` (worker processes),
 :mod:`~torcsrl.evaluate.results` (summaries, tables, JSON / CSV, reading results back),
 :mod:`~torcsrl.evaluate.plots` (trajectories, GIFs) and :mod:`~torcsrl.evaluate.app` (the app).
+
+The names below load their module on first use: ``import torcsrl.evaluate`` (and ``--help``) loads neither torch
+nor pybullet.
 """
 
-from torcsrl.evaluate.app import _track_task, evaluate, main, map_tasks
-from torcsrl.evaluate.plots import plot_trajectory, write_gif
-from torcsrl.evaluate.protocol import (PROTOCOL_VERSION, Degradation, EpisodeBook, EvalError, check_policy_env,
-                                       default_max_steps, env_sensors, expert_reference, make_cell_env, parse_degradation,
-                                       run_cell, run_episode, seed_for, validate_grid)
-from torcsrl.evaluate.results import (_f, _jsonable, markdown_table, read_evaluations, summarise_track, summary_table, write_csv,
-                                      write_json)
+from torcsrl.utils.lazy import lazy_exports
 
 __all__ = [
     "Degradation",
@@ -56,3 +55,18 @@ __all__ = [
     "summary_table",
     "main",
 ]
+
+#: Each name of the package and the module that defines it.
+_HOMES = {
+    **dict.fromkeys(("PROTOCOL_VERSION", "Degradation", "EvalError", "default_max_steps", "parse_degradation", "seed_for",
+                     "validate_grid"), "spec"),
+    **dict.fromkeys(("EpisodeBook", "check_policy_env", "env_sensors", "expert_reference", "make_cell_env", "run_cell",
+                     "run_episode"), "protocol"),
+    **dict.fromkeys(("markdown_table", "read_evaluations", "summarise_track", "summary_table", "write_csv", "write_json"),
+                    "results"),
+    **dict.fromkeys(("plot_trajectory", "write_gif"), "plots"),
+    "evaluate": "trial",
+    "map_tasks": "workers",
+    "main": "app",
+}
+__getattr__, __dir__ = lazy_exports(__name__, _HOMES)

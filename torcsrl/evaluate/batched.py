@@ -54,6 +54,7 @@ baseline, camera actors) drive one car at a time through :func:`run_cell`
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -63,9 +64,13 @@ import torch.nn.functional as F  # noqa: N812
 from tensordict import TensorDict
 
 from torcsrl import metrics
-from torcsrl.evaluate.protocol import (Degradation, EpisodeBook, default_max_steps, env_sensors, parse_degradation,
-                                       seed_for)
-from torcsrl.policies import Policy
+from torcsrl.envs import make_env
+from torcsrl.envs import tracks as _tracks
+from torcsrl.evaluate.protocol import EpisodeBook, env_sensors
+from torcsrl.evaluate.spec import Degradation, default_max_steps, parse_degradation, seed_for
+from torcsrl.nets import DeterministicActor
+from torcsrl.policies import CheckpointPolicy, EnsemblePolicy, Policy, SideGuard
+from torcsrl.transforms import seed_degradation_rows, stack_frames
 
 __all__ = ["supports_batch", "row_linear", "RowActor", "EnsembleRowActor", "GuardRowActor", "row_actor", "run_batch", "CARS_PER_WORLD"]
 
@@ -104,9 +109,6 @@ def supports_batch(policy: Policy) -> bool:
     """True when ``policy`` can drive a batch and stay equal to its one-car self: a checkpoint actor
     (:class:`~torcsrl.nets.DeterministicActor`, with or without a grip head) on vector observations only, a
     ``state_history`` included (:class:`RowActor` keeps each row's readings and restarts them with its group)."""
-    from torcsrl.nets import DeterministicActor
-    from torcsrl.policies import CheckpointPolicy, EnsemblePolicy, SideGuard
-
     if isinstance(policy, SideGuard):  # a side guard around such a policy (or ensemble): its correction is row-wise
         return type(policy).__call__ is SideGuard.__call__ and supports_batch(policy.inner)
     if isinstance(policy, EnsemblePolicy):  # an ensemble of such actors: each member batched, combined row for row
@@ -150,8 +152,6 @@ class RowActor:
 
     def _stack(self, k: str, x: torch.Tensor, fresh: list[int]) -> torch.Tensor:
         """Row for row what :meth:`CheckpointPolicy._act` keeps: the last ``state_history`` readings of ``k``."""
-        from torcsrl.transforms import stack_frames
-
         self._history[k] = stack = stack_frames(self._history.get(k), x, self.k, dim=-1, restart=fresh)
         return stack
 
@@ -199,8 +199,6 @@ class EnsembleRowActor:
 
     @torch.no_grad()
     def __call__(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        from torcsrl.policies import EnsemblePolicy
-
         return EnsemblePolicy.combine(torch.stack([m(obs) for m in self.members]), self.reduce, self.policy.near_rows(obs))
 
 
@@ -225,8 +223,6 @@ class GuardRowActor:
 def row_actor(policy: Policy) -> RowActor | EnsembleRowActor | GuardRowActor:
     """The batched actor of ``policy``: :class:`GuardRowActor` for a side guard, :class:`EnsembleRowActor` for an
     ensemble, else :class:`RowActor`."""
-    from torcsrl.policies import EnsemblePolicy, SideGuard
-
     if isinstance(policy, SideGuard):
         return GuardRowActor(policy)
     return EnsembleRowActor(policy) if isinstance(policy, EnsemblePolicy) else RowActor(policy)
@@ -249,12 +245,6 @@ def run_batch(policy: Policy, track: str, surface: str | None, degradations: Seq
     free) until their group restarts; their steps are not booked. Episodes of one grid can differ in length
     by 10x (a crash in 50 steps, a slow car truncated at the step cap), so idle cars are the rule.
     """
-    from collections import deque
-
-    from torcsrl.envs import make_env
-    from torcsrl.envs import tracks as _tracks
-    from torcsrl.transforms import seed_degradation_rows
-
     degs: list[Degradation] = [parse_degradation(d) for d in degradations]
     if not degs:
         return []

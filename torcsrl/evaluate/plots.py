@@ -5,17 +5,19 @@ from __future__ import annotations
 from collections.abc import Mapping
 from pathlib import Path
 
+import matplotlib
+import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.collections import LineCollection
+from mpl_toolkits.axes_grid1 import make_axes_locatable
+from PIL import Image
+
+matplotlib.use("Agg")  # files only, no display
+
 
 def plot_trajectory(track, trace: Mapping[str, np.ndarray], path: str | Path, title: str = "") -> Path:
     """Top-down PNG: track edges, the path coloured by speed [km/h] (colour bar), start line, and a
     red cross where the episode was terminated (if it was)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.collections import LineCollection
-
     s, tp, v = (np.asarray(trace[k], dtype=float) for k in ("s", "track_pos", "speed_kmh"))
     wl, wr = track.width(s)
     d = np.where(tp >= 0, tp * wl, tp * wr)
@@ -33,8 +35,6 @@ def plot_trajectory(track, trace: Mapping[str, np.ndarray], path: str | Path, ti
         lc.set_array(v[1:])
         lc.set_clim(0, max(50.0, float(np.nanmax(v))))
         ax.add_collection(lc)
-        from mpl_toolkits.axes_grid1 import make_axes_locatable
-
         ax.set_aspect("equal")
         ax.autoscale_view()
         cax = make_axes_locatable(ax).append_axes("right", size="4%", pad=0.1)
@@ -47,8 +47,6 @@ def plot_trajectory(track, trace: Mapping[str, np.ndarray], path: str | Path, ti
 
 def _save_top_down(fig, ax, path: str | Path, title: str) -> Path:
     """Finish a top-down plot (equal axes in metres, the title) and write it as a PNG."""
-    import matplotlib.pyplot as plt
-
     ax.set_aspect("equal")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
@@ -61,11 +59,7 @@ def _save_top_down(fig, ax, path: str | Path, title: str) -> Path:
 
 
 def write_gif(frames: np.ndarray, path: str | Path, fps: int = 10) -> Path | None:
-    """Animated GIF from frames ``[T, 3, H, W]`` uint8 (PIL); None when PIL is missing."""
-    try:
-        from PIL import Image
-    except ImportError:  # pragma: no cover - PIL ships with matplotlib
-        return None
+    """Animated GIF from frames ``[T, 3, H, W]`` uint8 (PIL, a matplotlib dependency); None without frames."""
     imgs = []
     for f in frames:
         a = np.transpose(np.asarray(f), (1, 2, 0)).astype(np.uint8)
@@ -89,12 +83,7 @@ def plot_race(track, trace: Mapping[str, object], path: str | Path, title: str =
     triangle up: ahead, a diamond: alongside, a triangle down: behind; :data:`Traffic.CONTACT_SIDES`), the opponents'
     as black crosses. ``trace``: ``xy [steps, cars, 2]`` (track frame), ``hits`` [(step, car[, side])] (a hit without
     a side: a cross), ``learner`` (car index)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from torcsrl.envs.traffic import Traffic
+    from torcsrl.envs.traffic import Traffic  # deferred: pybullet; the time trials' and the report's plots need none
 
     xy = np.asarray(trace["xy"], dtype=float)
     learner = int(trace.get("learner", 0))

@@ -1,11 +1,12 @@
 """The episode protocol: drive a deterministic policy for N laps from the grid, one implementation.
 
-Everything that decides what an episode *is* lives here and nowhere else: the seeds
-(:func:`seed_for`: env starts, degradation draws and the policy's own randomness, per
-(track, surface, episode) and per (degradation, severity, episode), the same for every policy:
-common random numbers), the step cap (:func:`default_max_steps`), lap accounting and
-termination reasons (:class:`EpisodeBook`: per car, from the env's ``info`` and the clean
-``state``, never a degraded reading), and the env of a cell (:func:`make_cell_env`).
+Everything that decides what an episode *is* lives here and in :mod:`torcsrl.evaluate.spec` (the inputs,
+checked before anything heavy loads) and nowhere else: the seeds (:func:`~torcsrl.evaluate.spec.seed_for`: env
+starts, degradation draws and the policy's own randomness, per (track, surface, episode) and per (degradation,
+severity, episode), the same for every policy: common random numbers), the step cap
+(:func:`~torcsrl.evaluate.spec.default_max_steps`), lap accounting and termination reasons (:class:`EpisodeBook`:
+per car, from the env's ``info`` and the clean ``state``, never a degraded reading), and the env of a cell
+(:func:`make_cell_env`).
 
 :func:`run_episode` drives one car; :func:`torcsrl.evaluate.batched.run_batch` drives many
 episodes as cars of one batched env with the same :class:`EpisodeBook` (tested equal, episode for
@@ -14,128 +15,33 @@ episode); ``torcsrl.train.validate`` and the report use them too.
 
 from __future__ import annotations
 
-import hashlib
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import torch
+from torchrl.envs import Compose
+from torchrl.envs.utils import step_mdp
 
 from torcsrl import metrics
+from torcsrl.envs import expert, make_env
+from torcsrl.envs import tracks as _tracks
+from torcsrl.envs.race import TERMINATION_REASONS
+from torcsrl.envs.sensors import STATE_SLOTS
+from torcsrl.evaluate.spec import Degradation, default_max_steps, parse_degradation, seed_for
 from torcsrl.policies import EpisodeContext, Policy
+from torcsrl.transforms import KeepClean, LeanTransformedEnv, seed_degradations
 
-#: Version of the episode protocol (part of every cache key: bump it when a metric's meaning changes).
-PROTOCOL_VERSION = 1
 #: Sensor keys in the env's canonical order.
 _SENSOR_ORDER = ("rangefinder", "state", "telemetry", "opponents", "pixels", "depth")
-
-class EvalError(ValueError):
-    """Bad evaluation input (unknown track, surface or degradation, empty grid): one line."""
-
-
-# --------------------------------------------------------------------------------------------
-# Seeds and degradations
-# --------------------------------------------------------------------------------------------
-def seed_for(seed: int, *parts: Any) -> int:
-    """A 63-bit seed derived from ``seed`` and ``parts`` (stable across runs and processes)."""
-    h = hashlib.sha256(repr((int(seed),) + tuple(str(p) for p in parts)).encode()).digest()
-    return int.from_bytes(h[:8], "little") & ((1 << 63) - 1)
-
-
-@dataclass(frozen=True)
-class Degradation:
-    """A degradation by registry name at a severity (0 = clean) with optional parameter overrides."""
-
-    name: str = metrics.CLEAN
-    severity: int = 0
-    params: tuple[tuple[str, Any], ...] = ()
-
-    @property
-    def clean(self) -> bool:
-        return self.name == metrics.CLEAN or self.severity == 0
-
-    def label(self) -> str:
-        return "clean" if self.clean else f"{self.name}@{self.severity}"
-
-    def keys(self) -> tuple[str, ...]:
-        """Observation keys the degradation can touch."""
-        if self.clean:
-            return ()
-        from torcsrl.transforms import registry
-
-        if self.name.startswith("weather."):
-            comps = registry.PRESETS[self.name.split(".", 1)[1]]
-            return tuple(sorted({k for q, _, _ in comps for k in registry.applies_to(q)}))
-        return tuple(registry.applies_to(self.name))
-
-    def build(self):
-        """The TorchRL transform (keys the env lacks are skipped)."""
-        from torcsrl.transforms import make_degradation
-
-        if self.name.startswith("weather."):
-            return make_degradation(self.name, severity=self.severity)
-        return make_degradation(self.name, severity=self.severity, optional=True, **dict(self.params))
-
-
-def _severity(v: Any, spec: Any) -> int:
-    """An integer severity from ``v`` (of the degradation ``spec``), or EvalError."""
-    try:
-        if isinstance(v, bool) or (isinstance(v, float) and not v.is_integer()):
-            raise ValueError
-        return int(v)
-    except (TypeError, ValueError):
-        raise EvalError(f"degradation {spec!r}: severity {v!r} is not an integer; allowed: name or name@severity with "
-                        "severity in 0..5 (0 = clean)") from None
-
-
-def parse_degradation(d: Any, severity: int | None = None) -> Degradation:
-    """A :class:`Degradation` from None, ``"name"``, ``"name@s"``, ``(name, s)``, a mapping
-    ``{name, severity, **params}`` or a Degradation; checks the name and severity (EvalError)."""
-    if d is None:
-        return Degradation()
-    if isinstance(d, Degradation):
-        deg = d
-    elif isinstance(d, str):
-        name, _, s = d.partition("@")
-        deg = Degradation(name, _severity(s if s else (severity if severity is not None else 3), d))
-    elif isinstance(d, Mapping):
-        m = dict(d)
-        if "name" not in m:
-            raise EvalError(f"a degradation mapping needs a name, got {d!r}; allowed: {{name, severity, **params}}")
-        name = m.pop("name")
-        s = _severity(m.pop("severity", severity if severity is not None else 3), d)
-        deg = Degradation(name, s, tuple(sorted(m.items())))
-    elif isinstance(d, (tuple, list)) and len(d) == 2:
-        deg = Degradation(str(d[0]), _severity(d[1], d))
-    else:
-        raise EvalError(f"cannot read a degradation from {d!r}; use 'name', 'name@severity' or {{name, severity}}")
-    if deg.name in (metrics.CLEAN, "clean"):
-        return Degradation()
-    if not 0 <= deg.severity <= 5:
-        raise EvalError(f"severity must be in 0..5 (0 = clean), got {deg.severity} for {deg.name}")
-    if deg.severity == 0:
-        return Degradation()
-    try:
-        from torcsrl.transforms import registry
-    except ImportError as err:
-        raise EvalError(f"degradations need torcsrl.transforms, which cannot be imported ({err})") from None
-    if deg.name.startswith("weather."):
-        if deg.name.split(".", 1)[1] not in registry.PRESETS:
-            raise EvalError(f"unknown weather preset {deg.name!r}; known: {', '.join('weather.' + p for p in registry.PRESETS)}")
-    else:
-        try:
-            registry.degradation_class(deg.name)
-        except ValueError as err:
-            raise EvalError(str(err)) from None
-    return deg
 
 
 # --------------------------------------------------------------------------------------------
 # One episode, one cell
 # --------------------------------------------------------------------------------------------
-def _base(env):
+def base_env(env):
+    """The race env under a transformed env (``env`` itself when it is not one)."""
     return getattr(env, "base_env", env)
 
 
@@ -149,26 +55,14 @@ def make_cell_env(policy: Policy, track: str, surface: str | None, deg: Degradat
                   env_kwargs: Mapping[str, Any] | None = None):
     """(env, transform or None): the race env for ``policy`` on ``track``, ``lap_limit=laps``,
     with the clean ``state`` kept as ``state_clean`` and ``deg`` on top when not clean."""
-    from torcsrl.envs import make_env
-
     kw = dict(env_kwargs or {})
     kw.update({k: v for k, v in policy.env_overrides.items() if k != "sensors"})
     kw["sensors"] = env_sensors(policy)
     env = make_env(track=track, surface=surface, lap_limit=int(laps), max_steps=int(max_steps), **kw)
     if deg.clean:
         return env, None
-    from torchrl.envs import Compose
-
-    from torcsrl.transforms import KeepClean, LeanTransformedEnv
-
     transform = Compose(KeepClean(["state"]), deg.build())
     return LeanTransformedEnv(env, transform), transform
-
-
-def default_max_steps(track_length_m: float, laps: int, dt: float = 0.02, min_speed_ms: float = 10.0,
-                      min_lap_s: float = 60.0) -> int:
-    """Step cap of an episode: ``laps`` laps at ``min_speed_ms`` (at least ``min_lap_s`` each)."""
-    return int(math.ceil(laps * max(min_lap_s, track_length_m / min_speed_ms) / dt))
 
 
 class EpisodeBook:
@@ -183,8 +77,6 @@ class EpisodeBook:
     """
 
     def __init__(self, n: int, laps: int, trace: bool = False) -> None:
-        from torcsrl.envs.sensors import STATE_SLOTS
-
         self.n, self.laps, self.trace = int(n), int(laps), bool(trace)
         self._i_tp, self._i_v = STATE_SLOTS.index("trackPos"), STATE_SLOTS.index("speedX_kmh")
         self.steer: list[list[float]] = [[] for _ in range(self.n)]
@@ -210,8 +102,6 @@ class EpisodeBook:
     def step_lists(action: Any, nxt: Any, trace: bool = False) -> tuple:
         """What :meth:`record_lists` reads from one step, as Python lists over the whole batch
         (extracted once per step, then shared by the books of every group of cars)."""
-        from torcsrl.envs.sensors import STATE_SLOTS
-
         total = nxt.get("done").numel()
         a = action.reshape(total, -1)[:, 0].tolist()
         rew = nxt.get("reward").reshape(total).tolist()
@@ -256,8 +146,6 @@ class EpisodeBook:
 
     def _end(self, nxt: Any, reason: Sequence[int] | np.ndarray | None, cars: Sequence[int], rows: slice | None = None,
              total: int | None = None) -> None:
-        from torcsrl.envs.race import TERMINATION_REASONS
-
         n = self.n
         total = n if total is None else total
         rows = slice(0, total) if rows is None else rows
@@ -339,12 +227,10 @@ def drive_episode(env, act: Callable[[Any], Any], laps: int, max_steps: int, *, 
     (a policy's episode start); ``observer(step, td)`` sees what the policy sees. One implementation for
     :func:`run_episode` (evaluate, report) and ``torcsrl.train.validate``; the batched path
     (:func:`torcsrl.evaluate.batched.run_batch`) books its cars with the same :class:`EpisodeBook`."""
-    from torchrl.envs.utils import step_mdp
-
     td = env.reset()
     if on_reset is not None:
         on_reset()
-    core = getattr(_base(env), "core", None)
+    core = getattr(base_env(env), "core", None)
     book = EpisodeBook(1, laps, trace=trace)
     pix: list[torch.Tensor] = []
     nxt = td
@@ -373,7 +259,7 @@ def run_episode(env, policy: Policy, ctx: EpisodeContext, laps: int, max_steps: 
     """
     book, pix = drive_episode(env, policy, laps, max_steps, trace=trace, frames=frames, observer=observer,
                               on_reset=lambda: policy.reset(ctx))
-    row = book.row(0, float(_base(env).core.dt))
+    row = book.row(0, float(base_env(env).core.dt))
     tr = book.trace_of(0) if trace else {}
     if pix:
         tr["frames"] = torch.stack(pix).numpy()
@@ -390,8 +276,6 @@ def run_cell(policy: Policy, track: str, surface: str | None = None, degradation
     ``corruption``, ``severity``, ``episode``, the seeds and the numbers of :func:`run_episode`.
     ``observer(episode, step, td)`` sees what the policy sees.
     """
-    from torcsrl.envs import tracks as _tracks
-
     deg = parse_degradation(degradation)
     geom = _tracks.load(track, surface=surface)
     surface_name = surface or geom.default_surface
@@ -399,16 +283,14 @@ def run_cell(policy: Policy, track: str, surface: str | None = None, degradation
     dt = 1.0 / float(hz)
     steps = int(max_steps) if max_steps else default_max_steps(geom.length, laps, dt)
     env, transform = make_cell_env(policy, track, surface, deg, laps, steps, env_kwargs)
-    core = _base(env).core
+    core = base_env(env).core
     rows, traces = [], []
     try:
         for e in range(int(episodes)):
             env_seed = seed_for(seed, "env", track, surface_name, e)
             deg_seed = seed_for(seed, "degradation", deg.name, deg.severity, e) if not deg.clean else None
-            _base(env).set_seed(env_seed)
+            base_env(env).set_seed(env_seed)
             if transform is not None:
-                from torcsrl.transforms import seed_degradations
-
                 seed_degradations(transform, deg_seed)
             ctx = EpisodeContext(track=core.car_tracks[0], seed=seed_for(seed, "policy", track, surface_name, e), episode=e,
                                  dt=float(core.dt))
@@ -423,39 +305,6 @@ def run_cell(policy: Policy, track: str, surface: str | None = None, degradation
     finally:
         env.close()
     return rows, traces
-
-
-# --------------------------------------------------------------------------------------------
-# Input checks
-# --------------------------------------------------------------------------------------------
-def validate_grid(tracks: Sequence[str] | str, surfaces: Sequence[str | None] | str | None) -> tuple[list[str], list[str | None]]:
-    """Resolve track names and sets (``set:heldout``) and check surfaces; EvalError (one line)."""
-    from torcsrl.envs import surfaces as _surf
-    from torcsrl.envs import tracks as _tracks
-
-    if isinstance(tracks, str):
-        tracks = [tracks]
-    if not tracks:
-        raise EvalError("no track given (empty grid); name a track or a set such as set:heldout")
-    try:
-        names = _tracks.resolve(list(tracks))
-        for n in names:
-            _tracks.load(n)
-    except ValueError as err:
-        raise EvalError(str(err)) from None
-    if not names:
-        raise EvalError(f"the tracks {list(tracks)} resolve to no track (empty grid)")
-    seen: list[str] = []
-    for n in names:
-        if n not in seen:
-            seen.append(n)
-    if surfaces is None or isinstance(surfaces, str):
-        surfaces = [surfaces]
-    surfaces = list(surfaces) or [None]
-    for s in surfaces:
-        if s is not None and s not in _surf.ROAD_SURFACES:
-            raise EvalError(f"unknown surface {s!r}; road surfaces: {', '.join(_surf.ROAD_SURFACES)}")
-    return seen, surfaces
 
 
 def check_policy_env(policy: Policy, track: str, env_kwargs: Mapping[str, Any] | None = None) -> None:
@@ -484,9 +333,6 @@ def expert_reference(track: str, surface: str | None = None, laps: int = 2) -> d
         return dict(_EXPERT_CACHE[key])
     out: dict[str, Any] = {"expert_lap": math.nan, "limit_lap": math.nan, "note": ""}
     try:
-        from torcsrl.envs import expert
-        from torcsrl.envs import tracks as _tracks
-
         t = _tracks.load(track, surface=surface)
         out["limit_lap"] = float(expert.limit_lap_time(t))
         r = expert.drive(t, laps=laps)

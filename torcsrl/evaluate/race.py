@@ -24,6 +24,7 @@ and car) or ``start=random`` make more.
 from __future__ import annotations
 
 import math
+import sys
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -31,10 +32,13 @@ from typing import Any
 
 import numpy as np
 
-from torcsrl.envs.traffic import Traffic
-from torcsrl.evaluate.protocol import (EvalError, Degradation, _base, default_max_steps, drive_episode, make_cell_env,
-                                       seed_for, validate_grid)
-from torcsrl.evaluate.results import _f, markdown_table, write_csv, write_json
+from torcsrl.envs import tracks as _tracks
+from torcsrl.envs.traffic import Traffic, TrafficError, TrafficSpec
+from torcsrl.evaluate.plots import plot_race
+from torcsrl.evaluate.protocol import base_env, drive_episode, make_cell_env
+from torcsrl.evaluate.results import fmt_value, markdown_table, write_csv, write_json
+from torcsrl.evaluate.spec import Degradation, EvalError, default_max_steps, seed_for, validate_grid
+from torcsrl.evaluate.workers import map_tasks, worker_policy, worker_spec
 from torcsrl.policies import EpisodeContext, Policy, load_policy
 
 __all__ = ["race_traffic", "run_race_cell", "race_summary", "race_table", "evaluate_race"]
@@ -57,21 +61,19 @@ def run_race_cell(policy: Policy, track: str, surface: str | None, traffic: Mapp
                   env_kwargs: Mapping[str, Any] | None = None, trace: bool = False) -> tuple[list[dict[str, Any]], list[dict]]:
     """``episodes`` races of ``policy`` on ``track``; one row per race (see the module docstring), and per race a trace
     of every car's world position ``xy [steps, cars, 2]`` (track frame) and the contact steps (when ``trace``)."""
-    from torcsrl.envs import tracks as _tracks
-
     geom = _tracks.load(track, surface=surface)
     surface_name = surface or geom.default_surface
     hz = {**dict(env_kwargs or {}), **policy.env_overrides}.get("control_hz", 50.0)
     steps = int(max_steps) if max_steps else default_max_steps(geom.length, laps, 1.0 / float(hz))
-    kw = {**dict(env_kwargs or {}), "traffic": dict(traffic)}
+    kw = {**dict(env_kwargs or {}), "traffic": dict(traffic), "policy_loader": load_policy}  # opponents of kind policy
     env, _ = make_cell_env(policy, track, surface, Degradation(), laps, steps, kw)
-    core = _base(env).core
+    core = base_env(env).core
     tr = core.traffic
     rows, traces = [], []
     try:
         for e in range(int(episodes)):
             env_seed = seed_for(seed, "env", track, surface_name, e)
-            _base(env).set_seed(env_seed)
+            base_env(env).set_seed(env_seed)
             ctx = EpisodeContext(track=core.car_tracks[0], seed=seed_for(seed, "policy", track, surface_name, e), episode=e,
                                  dt=float(core.dt))
             xy: list[np.ndarray] = []
@@ -155,16 +157,15 @@ def race_table(summaries: Sequence[Mapping[str, Any]]) -> tuple[list[str], list[
     body = []
     for s in summaries:
         body.append([s["track"], s["surface"], str(s["races"]), f"{s['finished']}/{s['races']}", f"{s['wins']}/{s['races']}",
-                     _f(s["mean_position"]), _f(s["collisions_per_race"]), f"{s['contact_free']}/{s['races']}",
-                     str(s["most_collisions"]), "·".join(str(s[f"contacts_{k}"]) for k in CONTACT_SIDES), _f(s["overtakes_per_race"]),
-                     _f(s["damage_per_race"]), _f(s["mean_gap_ahead_m"], "{:.1f}"), _f(s["mean_lead_m"], "{:.1f}"), str(s["scenarios"])])
+                     fmt_value(s["mean_position"]), fmt_value(s["collisions_per_race"]), f"{s['contact_free']}/{s['races']}",
+                     str(s["most_collisions"]), "·".join(str(s[f"contacts_{k}"]) for k in CONTACT_SIDES),
+                     fmt_value(s["overtakes_per_race"]), fmt_value(s["damage_per_race"]), fmt_value(s["mean_gap_ahead_m"], "{:.1f}"),
+                     fmt_value(s["mean_lead_m"], "{:.1f}"), str(s["scenarios"])])
     return list(RACE_COLUMNS), body
 
 
 def _race_job(spec: str | Policy, name: str, surface: str | None, tr: Mapping[str, Any], kw: dict) -> tuple[list, list]:
     """One track's races (a worker's task: the policy is loaded once per process)."""
-    from torcsrl.evaluate.app import worker_policy
-
     return run_race_cell(worker_policy(spec), name, surface, tr, **kw)
 
 
@@ -177,10 +178,6 @@ def evaluate_race(policy: str | Policy, tracks: str | Sequence[str], surfaces: A
     returns ``{"config", "policy", "summary", "episodes", "files"}`` and writes race.md / .csv / .json (and a
     top-down plot of the first race per track) to ``out_dir``. ``workers`` > 1: the tracks' races in that many
     processes (the same races, seeded per track and race, as in one process)."""
-    import sys
-
-    from torcsrl.envs.traffic import TrafficError, TrafficSpec
-
     t0 = time.perf_counter()
     if int(laps) < 1 or int(episodes) < 1:
         raise EvalError(f"laps and episodes must be >= 1, got laps={laps}, episodes={episodes}")
@@ -195,8 +192,6 @@ def evaluate_race(policy: str | Policy, tracks: str | Sequence[str], surfaces: A
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
     all_rows, summaries, files = [], [], []
-    from torcsrl.evaluate.app import map_tasks, worker_spec
-
     kw = {"laps": laps, "episodes": episodes, "seed": seed, "max_steps": max_steps, "env_kwargs": env_kwargs,
           "trace": plots and out is not None}
     cells = [(name, surface) for name in names for surface in surfs]
@@ -212,9 +207,6 @@ def evaluate_race(policy: str | Policy, tracks: str | Sequence[str], surfaces: A
             print(f"[torcsrl.evaluate] race {pol.name} on {name}/{s['surface']}: won {s['wins']}/{s['races']}, "
                   f"finished {s['finished']}/{s['races']}, {s['collisions_per_race']:.2f} collisions/race", file=sys.stderr)
         if out is not None and plots and traces and traces[0]:
-            from torcsrl.envs import tracks as _tracks
-            from torcsrl.evaluate.plots import plot_race
-
             r0 = rows[0]
             title = (f"{pol.name} vs {r0['opponents']} on {name}: "
                      + (f"P{r0['position']}" if r0["position"] else "DNF") + f", {r0['collisions']} learner collision(s)")

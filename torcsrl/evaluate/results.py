@@ -44,7 +44,8 @@ def summarise_track(rows: Sequence[Mapping[str, Any]], ref: Mapping[str, Any] | 
     return out
 
 
-def _f(x: Any, fmt: str = "{:.2f}", none: str = "–") -> str:
+def fmt_value(x: Any, fmt: str = "{:.2f}", none: str = "–") -> str:
+    """``x`` for a table cell: formatted with ``fmt``; ``none`` for None and NaN, ∞ / −∞ for infinities."""
     if x is None:
         return none
     try:
@@ -67,9 +68,10 @@ def summary_table(summaries: Sequence[Mapping[str, Any]]) -> tuple[list[str], li
         succ = ("yes" if s["success_rate"] == 1 else "no") if s["episodes"] == 1 else f"{100 * s['success_rate']:.0f}%"
         if s.get("terminations"):
             succ += f" ({s['terminations']})"
-        body.append([s["track"], s["surface"], laps, _f(s["fastest_lap"]), _f(s["mean_lap"]), succ, _f(s["mean_speed_kmh"], "{:.1f}"),
-                     _f(s["vs_expert"], "{:.3f}"), _f(s["vs_limit"], "{:.3f}"), str(s["off_track_events"]),
-                     _f(s["steer_abs_delta"], "{:.3f}"), _f(s["steer_flips_per_km"], "{:.1f}"), _f(s["return"], "{:.0f}")])
+        body.append([s["track"], s["surface"], laps, fmt_value(s["fastest_lap"]), fmt_value(s["mean_lap"]), succ,
+                     fmt_value(s["mean_speed_kmh"], "{:.1f}"), fmt_value(s["vs_expert"], "{:.3f}"),
+                     fmt_value(s["vs_limit"], "{:.3f}"), str(s["off_track_events"]), fmt_value(s["steer_abs_delta"], "{:.3f}"),
+                     fmt_value(s["steer_flips_per_km"], "{:.1f}"), fmt_value(s["return"], "{:.0f}")])
     return header, body
 
 
@@ -82,11 +84,12 @@ def markdown_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
 
 
 
-def _jsonable(x: Any) -> Any:
+def jsonable(x: Any) -> Any:
+    """``x`` as strict-JSON-ready Python (NaN -> None, ±inf -> "inf" / "-inf", numpy scalars and arrays -> Python)."""
     if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
+        return {str(k): jsonable(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
+        return [jsonable(v) for v in x]
     if isinstance(x, (np.floating, float)):
         x = float(x)
         if math.isnan(x):
@@ -99,7 +102,7 @@ def _jsonable(x: Any) -> Any:
     if isinstance(x, np.bool_):
         return bool(x)
     if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
+        return jsonable(x.tolist())
     return x
 
 
@@ -107,7 +110,7 @@ def write_json(obj: Any, path: str | Path) -> Path:
     """Strict JSON (NaN -> null, inf -> "inf"), written atomically."""
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(_jsonable(obj), indent=1, allow_nan=False))
+    tmp.write_text(json.dumps(jsonable(obj), indent=1, allow_nan=False))
     tmp.replace(path)
     return path
 
@@ -118,7 +121,7 @@ def write_csv(rows: Sequence[Mapping[str, Any]], path: str | Path, columns: Sequ
         w = csv.DictWriter(f, fieldnames=cols, extrasaction="ignore")
         w.writeheader()
         for r in rows:
-            w.writerow({k: (";".join(f"{v:.3f}" for v in r[k]) if isinstance(r.get(k), list) else _jsonable(r.get(k))) for k in cols})
+            w.writerow({k: (";".join(f"{v:.3f}" for v in r[k]) if isinstance(r.get(k), list) else jsonable(r.get(k))) for k in cols})
     return Path(path)
 
 

@@ -35,18 +35,14 @@ Metric definitions: :mod:`torcsrl.metrics`.
 ``evaluation.json`` under DIR (e.g. the jobs of a Hydra multirun of ``torcsrl.evaluate``, one
 per track/degradation/severity) and every cached cell JSON.
 
-The package: :mod:`~torcsrl.report.grid` (the config, the cells, running them: batched as cars of
-one env per policy and track, cached, in worker processes), :mod:`~torcsrl.report.results`
-(reading rows back, the metrics and the files), :mod:`~torcsrl.report.plots` and
-:mod:`~torcsrl.report.app` (the app).
+The package: :mod:`~torcsrl.report.grid` (the config, the cells, the checks of the counts),
+:mod:`~torcsrl.report.runner` (running the cells: batched as cars of one env per policy and track, cached, in worker
+processes or Ray tasks), :mod:`~torcsrl.report.results` (reading rows back, the metrics and the files),
+:mod:`~torcsrl.report.plots` and :mod:`~torcsrl.report.app` (the app). The names below load their module on first
+use: ``import torcsrl.report`` (and ``--help``) loads neither torch nor pybullet.
 """
 
-from torcsrl.report.app import main
-from torcsrl.report.grid import (DEFAULT_DEGRADATIONS, DEFAULT_SEVERITIES, DEFAULT_TRACKS, EFFECT_FAMILIES, RANDOM, Cell,
-                                 ReportConfig, check_counts, code_hash, default_policies, expand_degradations, prepare,
-                                 run_report, sensor_and_family)
-from torcsrl.report.plots import plot_heatmap, plot_severity_curves
-from torcsrl.report.results import build_report, read_rows
+from torcsrl.utils.lazy import lazy_exports
 
 __all__ = [
     "DEFAULT_DEGRADATIONS",
@@ -59,3 +55,14 @@ __all__ = [
     "read_rows",
     "main",
 ]
+
+#: Each name of the package and the module that defines it.
+_HOMES = {
+    **dict.fromkeys(("DEFAULT_DEGRADATIONS", "DEFAULT_SEVERITIES", "DEFAULT_TRACKS", "EFFECT_FAMILIES", "RANDOM", "Cell",
+                     "ReportConfig", "check_counts", "code_hash", "expand_degradations", "sensor_and_family"), "grid"),
+    **dict.fromkeys(("default_policies", "prepare", "run_report"), "runner"),
+    **dict.fromkeys(("plot_heatmap", "plot_severity_curves"), "plots"),
+    **dict.fromkeys(("build_report", "read_rows"), "results"),
+    "main": "app",
+}
+__getattr__, __dir__ = lazy_exports(__name__, _HOMES)

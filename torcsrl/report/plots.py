@@ -7,16 +7,17 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import matplotlib
+import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.lines import Line2D
+
+matplotlib.use("Agg")  # files only, no display
+
 
 def plot_heatmap(summary: Mapping[str, Any], path: Path, reused: set[tuple[str, str]] = frozenset()) -> Path:
     """NR over degradation × severity, one panel per policy (RdYlGn, 0..1; NaN grey); a † marks
     the (policy, degradation) pairs in ``reused`` (the degradation misses the policy's inputs)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     pols = list(summary["policies"])
     cors = summary["corruptions"]
     sev = summary["severities"]
@@ -54,11 +55,6 @@ def plot_heatmap(summary: Mapping[str, Any], path: Path, reused: set[tuple[str, 
 def plot_severity_curves(summary: Mapping[str, Any], path: Path, reused: set[tuple[str, str]] = frozenset()) -> Path:
     """NR against severity, one panel per degradation, one line per policy with its 95 % band
     (dotted, hollow markers: a policy that does not observe what the degradation corrupts)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     pols = list(summary["policies"])
     cors = summary["corruptions"]
     sev = summary["severities"]
@@ -88,8 +84,6 @@ def plot_severity_curves(summary: Mapping[str, Any], path: Path, reused: set[tup
         ax.grid(alpha=0.3)
     for k in range(len(cors), nrow * ncol):
         axes[k // ncol][k % ncol].set_visible(False)
-    from matplotlib.lines import Line2D
-
     handles = [Line2D([], [], color=colors(i % 10), marker="o", lw=1.6, ms=4) for i in range(len(pols))]
     labels = list(pols)
     if reused:

@@ -5,14 +5,15 @@ from __future__ import annotations
 import base64
 import html
 import json
+import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-
 from torcsrl import metrics
-from torcsrl.evaluate import EvalError, _f, markdown_table, read_evaluations, write_csv, write_json
-from torcsrl.report.grid import EFFECT_FAMILIES, RANDOM, _hash, check_counts, sensor_and_family
+from torcsrl.evaluate.results import fmt_value, markdown_table, read_evaluations, write_csv, write_json
+from torcsrl.evaluate.spec import EvalError
+from torcsrl.report.grid import EFFECT_FAMILIES, RANDOM, check_counts, sensor_and_family, stable_hash
 from torcsrl.report.plots import plot_heatmap, plot_severity_curves
 
 # --------------------------------------------------------------------------------------------
@@ -85,8 +86,6 @@ class _Doc:
         return "\n".join(out)
 
     def html(self, title: str) -> str:
-        import re
-
         def inline(t: str) -> str:
             t = html.escape(t)
             return re.sub(r"\*\*(.+?)\*\*", r"<b>\1</b>", t)
@@ -118,14 +117,14 @@ class _Doc:
 
 
 def _ci(v, ci, fmt="{:.2f}") -> str:
-    s = _f(v, fmt)
+    s = fmt_value(v, fmt)
     if ci and ci[0] is not None and ci[1] is not None and v is not None and not (ci[0] == ci[1] == v):
-        s += f" ({_f(ci[0], fmt)}–{_f(ci[1], fmt)})"
+        s += f" ({fmt_value(ci[0], fmt)}–{fmt_value(ci[1], fmt)})"
     return s
 
 
 def _pct(v) -> str:
-    return _f(None if v is None else 100.0 * v, "{:.0f}%")
+    return fmt_value(None if v is None else 100.0 * v, "{:.0f}%")
 
 
 
@@ -153,7 +152,7 @@ def build_report(rows: Sequence[Mapping[str, Any]], out_dir: str | Path, *, poli
     cors = summary["corruptions"]
 
     # files: JSON, CSVs
-    config_hash = meta.get("config_hash") or _hash(sorted({str(r.get("policy_fingerprint")) for r in rows}))[:16]
+    config_hash = meta.get("config_hash") or stable_hash(sorted({str(r.get("policy_fingerprint")) for r in rows}))[:16]
     if cells is None:
         groups: dict[tuple, list] = {}
         for r in rows:
@@ -196,7 +195,7 @@ def build_report(rows: Sequence[Mapping[str, Any]], out_dir: str | Path, *, poli
     n_p = f"{len(pols)} polic{'y' if len(pols) == 1 else 'ies'}"
     lead = f"**{best}** has the highest mRR of {n_p}:" if len(pols) > 1 else f"**{best}**: mRR"
     line = (f"{lead} {_ci(bp['mrr'], bp['mrr_ci'])}, mCE {_pct(bp['mce'])} of {ref}'s; "
-            f"clean LCR {_pct(bp['clean']['lcr'])}; worst degradation {wc['corruption']} (mean NR {_f(wc['nr'])}); "
+            f"clean LCR {_pct(bp['clean']['lcr'])}; worst degradation {wc['corruption']} (mean NR {fmt_value(wc['nr'])}); "
             + ("already fails clean (LCR < 50% at severity 0): read normalised return, not breaking severity."
                if _fails_clean(fb) else
                f"first breaks (LCR < 50%) under {fb['corruption']} at severity {fb['severity']}." if fb
@@ -223,10 +222,11 @@ def build_report(rows: Sequence[Mapping[str, Any]], out_dir: str | Path, *, poli
         d = summary["policies"][p]
         w = d["worst_case"]
         b = d["first_break"]
-        body.append([str(i), p + (" (ref)" if p == ref else ""), _pct(d["clean"]["lcr"]), _f(d["clean"]["return"], "{:.0f}"),
+        body.append([str(i), p + (" (ref)" if p == ref else ""), _pct(d["clean"]["lcr"]), fmt_value(d["clean"]["return"], "{:.0f}"),
                      _ci(d["mrr"], d["mrr_ci"]), _ci(None if d["mce"] is None else 100 * d["mce"],
                                                      [None if v is None else 100 * v for v in d["mce_ci"]], "{:.0f}%"),
-                     _pct(d["relative_mce"]), _f(d["mean_ausc"]), f"{w['corruption']} ({_f(w['nr'])})" if w["corruption"] else "–",
+                     _pct(d["relative_mce"]), fmt_value(d["mean_ausc"]),
+                     f"{w['corruption']} ({fmt_value(w['nr'])})" if w["corruption"] else "–",
                      "fails clean" if _fails_clean(b) else f"{b['corruption']} @ {b['severity']}" if b else "none"])
     doc.table(header, body)
     doc.h(2, "Plots")
@@ -251,7 +251,7 @@ def build_report(rows: Sequence[Mapping[str, Any]], out_dir: str | Path, *, poli
                 d = summary["policies"][p]["corruptions"][c]
                 body.append([sensor_and_family(c)[1], c + (" †" if (p, c) in reused else ""),
                              *[_ci(d["severities"][str(s)]["nr"], d["severities"][str(s)]["nr_ci"]) for s in s_hi],
-                             *[_pct(d["severities"][str(s)]["lcr"]) for s in s_hi], _f(d["ausc"]),
+                             *[_pct(d["severities"][str(s)]["lcr"]) for s in s_hi], fmt_value(d["ausc"]),
                              "–" if d["breaking_severity"] is None else str(d["breaking_severity"]),
                              _pct(d["ce"]), _pct(d["relative_ce"])])
             doc.p(f"**{sensor}**")
