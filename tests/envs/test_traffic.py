@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -11,7 +12,7 @@ from tensordict import TensorDict
 
 from torcsrl.envs import make_env
 from torcsrl.envs.race import RaceCore
-from torcsrl.envs.traffic import TrafficError, TrafficSpec, _load_opponent_policy, opponent_sectors
+from torcsrl.envs.traffic import TrafficError, TrafficSpec, load_opponent_policy, opponent_sectors, sector_directions
 
 FAST = dict(control_hz=10, substeps=20)
 
@@ -212,8 +213,10 @@ def test_bad_traffic_fails_in_one_line():
     assert "\n" not in str(e.value)
     with pytest.raises(TrafficError, match="allowed: expert, policy, slow, parked"):
         TrafficSpec.from_config({"driver": {"kind": "bus"}})
+    from torcsrl.policies import load_policy
+
     with pytest.raises(TrafficError, match="cannot give an opponent; allowed: a policy on rangefinder, state, telemetry, opponents"):
-        _load_opponent_policy("reference_camera")
+        load_opponent_policy("reference_camera", load_policy)
     with pytest.raises(ValueError, match="traffic: unknown keys"):
         RaceCore(track="oval", traffic={"opponent": 3})
 
@@ -224,14 +227,15 @@ def test_policy_opponents_forget_their_readings_when_their_race_restarts(tmp_pat
     race's readings."""
     from _compose import compose_config
 
-    from torcsrl.train import train
+    from torcsrl.policies import load_policy
+    from torcsrl.training import train
     from torcsrl.utils.checkpoint import latest_checkpoint
 
     train(compose_config("debug=smoke", "env.track=oval", "eval.max_steps=20", "threads=1", "algo=dagger", "state_history=3",
                          "demos.frames=80", "algo.bc_steps=5", "demos.dagger_rounds=0", f"run_dir={tmp_path / 'r'}"))
     ck = str(latest_checkpoint(tmp_path / "r" / "checkpoints"))
     env = make_env(track="oval", num_cars=1, seed=3, sensors=("rangefinder", "state", "opponents"), max_steps=4,
-                   traffic={"opponents": 2, "driver": {"kind": "policy", "policy": ck}}, **FAST)
+                   traffic={"opponents": 2, "driver": {"kind": "policy", "policy": ck}}, policy_loader=load_policy, **FAST)
     try:
         pol = env.core.traffic._policies[ck]
         td = env.reset()
@@ -245,3 +249,54 @@ def test_policy_opponents_forget_their_readings_when_their_race_restarts(tmp_pat
         assert torch.equal(new[:, :11], new[:, 11:22])  # the restart's first reading, repeated (then the newest)
     finally:
         env.close()
+
+
+def test_opponent_policies_are_handed_in_by_the_layer_above():
+    """The env loads no policies: an opponent of kind policy is loaded by the ``policy_loader`` make_env is given (the
+    layer above hands in ``torcsrl.policies.load_policy``); without one, or when the loader fails, the env fails in one
+    line. Scripted opponents need none, through gymnasium too."""
+    import gymnasium as gym
+
+    from torcsrl.envs import ENV_ID
+
+    tr = {"opponents": 1, "driver": {"kind": "policy", "policy": "some_driver"}}
+    with pytest.raises(TrafficError, match="needs a policy loader, which this env was not given") as e:
+        RaceCore(track="oval", traffic=tr)
+    assert "\n" not in str(e.value)
+    asked = []
+
+    def loader(spec):
+        asked.append(spec)
+        if spec != "some_driver":
+            raise ValueError(f"no driver {spec!r}")
+        return SimpleNamespace(obs_keys=("pixels",))
+
+    with pytest.raises(TrafficError, match="reads \\['pixels'\\], which the env cannot give an opponent"):
+        load_opponent_policy("some_driver", loader)
+    with pytest.raises(TrafficError, match="traffic opponent policy 'other': no driver 'other'"):
+        load_opponent_policy("other", loader)
+    with pytest.raises(TrafficError, match="needs a policy loader"):
+        make_env(track="oval", traffic=tr, **FAST)
+    with pytest.raises(TrafficError, match="reads \\['pixels'\\]"):
+        make_env(track="oval", traffic=tr, policy_loader=loader, **FAST)
+    assert asked == ["some_driver", "other", "some_driver"]
+    with pytest.raises(TrafficError, match="traffic: unknown keys \\['policy_loader'\\]"):
+        TrafficSpec.from_config({"opponents": 1, "policy_loader": loader})
+    with pytest.raises(TrafficError, match="policy_loader must be a callable"):
+        TrafficSpec.from_config({"opponents": 1}).with_policy_loader("torcsrl.policies.load_policy")
+    env = gym.make(ENV_ID, track="oval", traffic={"opponents": 2, "driver": {"kind": "expert", "pace": 0.6}}, **FAST)
+    try:
+        obs, _ = env.reset(seed=0)
+        obs, *_ = env.step(np.array([0.0, 0.5], dtype=np.float32))
+        assert env.unwrapped.core.traffic.K == 2
+    finally:
+        env.close()
+
+
+def test_sector_directions_are_the_sectors_opponent_sectors_fills():
+    """A car placed along sector k's centre direction (``sector_directions``) is seen in sector k."""
+    cos, sin = sector_directions()
+    for k in (0, 9, 17, 18, 26, 35):
+        xy = np.array([[0.0, 0.0], [20.0 * cos[k], 20.0 * sin[k]]])
+        opp = opponent_sectors(xy, np.zeros(2), np.zeros(2, dtype=np.int64))
+        assert opp[0, k] == pytest.approx(20.0, abs=1e-4) and (np.delete(opp[0], k) == 200.0).all(), k

@@ -6,6 +6,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import gymnasium as gym
@@ -29,6 +30,7 @@ def make_env(
     device: str = "cpu",
     camera: dict[str, Any] | None = None,
     batched: bool | None = None,
+    policy_loader: Callable[[str], Any] | None = None,
     **kwargs: Any,
 ):
     """The race as a TorchRL ``EnvBase`` (see :class:`torcsrl.envs.batched.TorchRaceEnv`).
@@ -36,9 +38,17 @@ def make_env(
     ``batch_size`` is ``[]`` for one car, ``[num_cars]`` otherwise (or with ``batched=True``).
     Every keyword of :class:`torcsrl.envs.race.RaceCore` is accepted (reward_scale, spawn_jitter,
     offtrack_grace_s, no_progress_s, action_mode, vehicle, control_hz, …).
+    ``policy_loader``: what turns the ``policy`` spec of a ``traffic`` opponent of kind ``policy`` into a policy
+    (``torcsrl.policies.load_policy``, handed in by the layer above: the env loads no policies itself); a traffic
+    with such opponents and no loader fails in one line. Scripted opponents need none.
     """
     from torcsrl.envs.batched import TorchRaceEnv
 
+    if policy_loader is not None and kwargs.get("traffic") is not None:
+        from torcsrl.envs.traffic import TrafficSpec  # deferred: pybullet, only once a race env is built
+
+        spec = TrafficSpec.from_config(kwargs["traffic"])
+        kwargs["traffic"] = spec.with_policy_loader(policy_loader) if spec is not None else None
     return TorchRaceEnv(track=track, surface=surface, sensors=tuple(sensors), reward=reward, num_cars=num_cars,
                         max_steps=max_steps, lap_limit=lap_limit, start=start, seed=seed, device=device,
                         camera=camera, batched=batched, **kwargs)

@@ -51,15 +51,15 @@ from __future__ import annotations
 
 import copy
 import math
-from collections.abc import Mapping
-from dataclasses import dataclass, field, fields
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 import numpy as np
 from torcsrl.utils.bullet import pybullet as p
 
-__all__ = ["OPPONENT_KINDS", "TrafficSpec", "DriverSpec", "TrafficError", "Traffic", "opponent_sectors",
-           "OPPONENT_SECTORS", "OPPONENT_RANGE_M", "RACE_INFO_KEYS", "OPPONENT_OBS_KEYS"]
+__all__ = ["OPPONENT_KINDS", "TrafficSpec", "DriverSpec", "TrafficError", "Traffic", "opponent_sectors", "sector_directions",
+           "load_opponent_policy", "OPPONENT_SECTORS", "OPPONENT_RANGE_M", "RACE_INFO_KEYS", "OPPONENT_OBS_KEYS"]
 
 OPPONENT_KINDS = ("expert", "policy", "slow", "parked")
 START_KINDS = ("grid", "rolling")
@@ -153,6 +153,10 @@ class TrafficSpec:
     safe_gap_min_m: float = 10.0
     block_range_m: float = 20.0
     side_gap_m: float = 3.2
+    #: What turns an opponent's ``policy`` spec into a policy (``torcsrl.policies.load_policy``): handed in by whoever
+    #: builds the env (``make_env(policy_loader=...)``, :meth:`with_policy_loader`), as the env layer loads no
+    #: policies itself; not a config key.
+    policy_loader: Callable[[str], Any] | None = field(default=None, compare=False, repr=False)
 
     @classmethod
     def from_config(cls, cfg: Any) -> TrafficSpec | None:
@@ -162,7 +166,7 @@ class TrafficSpec:
         if not isinstance(cfg, Mapping):
             raise TrafficError(f"traffic must be a mapping (conf/traffic/*.yaml) or null, got {cfg!r}")
         d = dict(cfg)
-        names = {f.name for f in fields(cls)}
+        names = {f.name for f in fields(cls)} - {"policy_loader"}
         unknown = sorted(set(d) - names)
         if unknown:
             raise TrafficError(f"traffic: unknown keys {unknown}; allowed: {', '.join(sorted(names))}")
@@ -220,12 +224,26 @@ class TrafficSpec:
     def policy_specs(self) -> list[str]:
         return sorted({self.driver_of(j).policy for j in range(self.opponents) if self.driver_of(j).kind == "policy"})
 
+    def with_policy_loader(self, loader: Callable[[str], Any] | None) -> TrafficSpec:
+        """This traffic, its opponents' policies loaded by ``loader`` (a spec -> a policy; see :attr:`policy_loader`)."""
+        if loader is not None and not callable(loader):
+            raise TrafficError(f"traffic policy_loader must be a callable (a policy spec -> a policy), got {loader!r}")
+        return replace(self, policy_loader=loader)
+
 
 #: Grid geometry [m]: front of the grid behind the line (``front_m``), row spacing, the right column's stagger,
 #: lateral offset as a fraction of the half-width, and how many cars it holds.
 GRID_DEFAULTS = {"slots": 12, "front_m": 6.0, "row_m": 12.0, "stagger_m": 6.0, "lateral": 0.45}
 #: Rolling start: speed [km/h] and the gap between consecutive cars [m].
 ROLLING_DEFAULTS = {"speed_kmh": 80.0, "gap_m": 25.0}
+
+
+def sector_directions(sectors: int = OPPONENT_SECTORS) -> tuple[np.ndarray, np.ndarray]:
+    """``(cos, sin)`` ``[36]`` of the SCR opponents sectors' centres, ``175 - 10 k`` degrees counter-clockwise from the
+    heading (sector 0 straight back from the left, 9 left, 17/18 ahead, 27 right): a car a sector shows at ``r`` m sits
+    ``r cos`` ahead and ``r sin`` to the left. How the racing teacher and the side guard read the sensor."""
+    phi = np.radians(175.0 - 10.0 * np.arange(sectors))
+    return np.cos(phi), np.sin(phi)
 
 
 def opponent_sectors(xy: np.ndarray, yaw: np.ndarray, groups: np.ndarray, active: np.ndarray | None = None,
@@ -299,7 +317,7 @@ class Traffic:
         self._policies: dict[str, Any] = {}
         self._restarted: set[int] = set()  # policy-driven opponent cars whose episode restarted since their last step
         for path in spec.policy_specs():
-            self._policies[path] = _load_opponent_policy(path)
+            self._policies[path] = load_opponent_policy(path, spec.policy_loader)
         self._base_drivers: dict[tuple, Any] = {}
         self.drivers: list[Any] = [None] * (N * K)  # per opponent car (index car - N)
         self.pace = np.ones(N * K)
@@ -639,17 +657,19 @@ class Traffic:
             self.drivers[i] = drv
 
 
-def _load_opponent_policy(spec: str):
-    """A frozen policy for opponents; its observation keys must be ones the env gives every car."""
-    from torcsrl.policies import PolicyError, load_policy
-
+def load_opponent_policy(spec: str, loader: Callable[[str], Any] | None):
+    """A frozen policy for opponents, ``loader(spec)``; its observation keys must be ones the env gives every car.
+    :class:`TrafficError` (one line) when no loader is handed in, the loader fails (a ``ValueError``, as
+    ``torcsrl.policies.PolicyError`` is) or the policy reads what an opponent cannot have."""
+    if loader is None:
+        raise TrafficError(f"traffic opponent policy {spec!r} needs a policy loader, which this env was not given; build it "
+                           "with make_env(..., policy_loader=torcsrl.policies.load_policy) (or TrafficSpec.with_policy_loader)")
     try:
-        pol = load_policy(spec)
-    except PolicyError as err:
+        pol = loader(spec)
+    except ValueError as err:
         raise TrafficError(f"traffic opponent policy {spec!r}: {err}") from None
     bad = [k for k in pol.obs_keys if k not in OPPONENT_OBS_KEYS]
     if bad:
         raise TrafficError(f"traffic opponent policy {spec!r} reads {bad}, which the env cannot give an opponent; "
                            f"allowed: a policy on {', '.join(OPPONENT_OBS_KEYS)}")
     return pol
-
