@@ -33,6 +33,8 @@ from torcsrl.envs.sensors import (MS_TO_KMH, RANGEFINDER_ANGLES_DEG, RANGE_M, ST
 from torcsrl.envs.traffic import (OPPONENT_RANGE_M, OPPONENT_RGBA, OPPONENT_SECTORS, RACE_INFO_KEYS, Traffic, TrafficSpec,
                                   opponent_sectors)
 from torcsrl.envs.vehicle import BACKENDS, CarFleet, VehicleParams, make_ground
+from torcsrl.envs.world import TRACK_SPACING_M
+from torcsrl.utils.seq import as_list
 
 ACTION_MODES = ("combined", "separate")
 START_MODES = ("grid", "random")
@@ -42,8 +44,6 @@ SCALAR_LOCATE_MAX_CARS = 8
 #: Up to this many cars the walk runs car by car in plain Python; beyond, vectorised over the cars
 #: (:meth:`Track.track_points`, the same numbers).
 PYTHON_WALK_MAX_CARS = 4
-#: Distance between the world origins of the tracks of one env [m].
-TRACK_SPACING_M = 10_000.0
 #: Keys of the per-car bookkeeping reported in ``info`` (TORCS names; SI units).
 #: ``surfaceMu`` [-] is the mean friction coefficient under the car's four wheels (surface x tyre): privileged
 #: knowledge for teachers (a camera sees the surface, no TORCS sensor does); no observation carries it.
@@ -56,16 +56,6 @@ def wrap_deltas(s_new: np.ndarray, s_old: np.ndarray, lengths: np.ndarray) -> np
     operations elementwise, so each entry has the bits ``car_tracks[i].wrap_delta(s_new[i], s_old[i])`` has."""
     half = 0.5 * lengths
     return np.mod(s_new - s_old + half, lengths) - half
-
-
-def _as_list(x) -> list:
-    if x is None:
-        return [None]
-    if isinstance(x, (list, tuple)):
-        return list(x)
-    if hasattr(x, "__iter__") and not isinstance(x, str):  # omegaconf ListConfig
-        return list(x)
-    return [x]
 
 
 def episode_setting_problems(**settings: Any) -> list[tuple[str, str]]:
@@ -187,13 +177,13 @@ class RaceCore:
         self.traffic_spec = TrafficSpec.from_config(traffic)
         k_opp = self.traffic_spec.opponents if self.traffic_spec is not None else 0
         self.n = self.n_learners * (1 + k_opp)
-        self.track_names = _tracks.resolve(_as_list(track))
+        self.track_names = _tracks.resolve(as_list(track))
         #: Named tracks first, then the procedural pool (slots n_named ...).
         self.n_named = len(self.track_names)
         self.procedural = ProceduralSpec.from_config(procedural)
         if self.procedural is not None:
             self.track_names = self.track_names + self.procedural.names(seed)
-        self.surfaces = _as_list(surface)
+        self.surfaces = as_list(surface)
         for s in self.surfaces:
             if s is not None and s not in _surf.ROAD_SURFACES:
                 raise ValueError(f"unknown surface {s!r}; road surfaces: {', '.join(_surf.ROAD_SURFACES)}")

@@ -45,7 +45,6 @@ import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 from torcsrl.utils.bullet import pybullet as p
 
@@ -234,6 +233,8 @@ def _rasterize(polys: list[tuple[int, np.ndarray, int]], st: WorldStyle) -> Grou
     """Fill ``(material id, polygon [k, 2] world, group)`` into tiles. Each group (a chunk of
     track) is filled in order (later polygons on top) into one dense patch, cut into tiles; where
     groups meet, the higher id wins (marks over road)."""
+    import cv2  # deferred: OpenCV (~0.1 s) only rasterises a camera world's ground; envs.race imports this module
+
     sh = st.tile_shift
     c, cell = 1 << sh, st.raster_cell_m
     tile_m = c * cell
