@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from torcsrl.envs import tracks
-from torcsrl.envs.tracks.generator import (CIRCUIT_KNOB_RANGES, CURVATURE_RATE_MAX, LONG_STRAIGHT_M, _circuit_plan,
+from torcsrl.envs.tracks.generator import (CIRCUIT_KNOB_RANGES, CURVATURE_RATE_MAX, LONG_STRAIGHT_M, circuit_plan,
                                            generate_circuit)
 from torcsrl.envs.tracks.sources import SAMPLE_SPACING_M
 
@@ -147,8 +147,8 @@ def test_given_knobs_are_kept_and_others_still_drawn():
     assert _features(t)["hairpins"] == 0 and t.name == "mine" and t.default_surface == "dirt"
     # one knob given: the other seed-drawn values stay as they were
     knobs = dict.fromkeys(CIRCUIT_KNOB_RANGES)
-    base = _circuit_plan(5, {**knobs, "difficulty": 0.5})
-    given = _circuit_plan(5, {**knobs, "difficulty": 0.5, "chicanes": 4})
+    base = circuit_plan(5, {**knobs, "difficulty": 0.5})
+    given = circuit_plan(5, {**knobs, "difficulty": 0.5, "chicanes": 4})
     assert given["chicanes"] == 4 and {k: v for k, v in given.items() if k not in ("chicanes", "plain", "length_m")} == {
         k: v for k, v in base.items() if k not in ("chicanes", "plain", "length_m")}
 

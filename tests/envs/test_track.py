@@ -336,7 +336,7 @@ def test_the_parsed_track_cache_is_bounded():
     first = tracks.load("gen-40000")
     for i in range(tracks.TRACK_CACHE_SIZE + 10):
         tracks.load(f"gen-{40001 + i}")
-    info = tracks._load_cached.cache_info()
+    info = tracks.cache_info()
     assert info.currsize == tracks.TRACK_CACHE_SIZE == info.maxsize
     again = tracks.load("gen-40000")  # evicted, generated again
     assert again is not first and np.array_equal(again.xy, first.xy)

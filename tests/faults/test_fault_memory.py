@@ -47,7 +47,7 @@ def test_env_create_close_cycles_keep_rss_flat():
 
 DISTINCT = CODE.replace('e = make_env(track=["hairpins", "oval"])', 'e = make_env(track=[f"gen-{next(SEEDS)}"])').replace(
     "def cycle():", "import itertools\nfrom torcsrl.envs import tracks\nSEEDS = itertools.count(50000)\ndef cycle():").replace(
-    "    e.close()", "    e.close()\n    tracks._load_cached.cache_clear()  # the parsed-track cache is bounded, and not what this measures")
+    "    e.close()", "    e.close()\n    tracks.clear_cache()  # the parsed-track cache is bounded, and not what this measures")
 
 
 def test_envs_on_tracks_never_seen_before_keep_rss_flat():

@@ -58,7 +58,8 @@ __all__ = [
 ]
 
 G = 9.81  # [m/s^2]
-_LINES = ("racing", "centre")
+#: The lines the expert can follow: the racing line, or the centre of the road.
+LINES = ("racing", "centre")
 #: Half-width [m] of the band about the middle of the road the racing line may use where the road
 #: is narrower than twice its edge margin.
 _MIN_BAND_M = 0.05
@@ -184,8 +185,8 @@ def racing_line(track: Track, kind: str = "racing", margin_m: float = 2.2, mu: f
     from the edges; ``length_weight`` [1/m^2] > 0 trades curvature for a shorter line (see
     :func:`_min_curvature_offsets`). ``mu`` overrides the friction of the track's surfaces (else each stretch's own surface).
     """
-    if kind not in _LINES:
-        raise ValueError(f"line must be one of {', '.join(_LINES)}, got {kind!r}")
+    if kind not in LINES:
+        raise ValueError(f"line must be one of {', '.join(LINES)}, got {kind!r}")
     c = track.xy
     m = len(c)
     normal = track.normal(track.s)
@@ -337,8 +338,8 @@ def limit_lap_time(
         mu: a friction coefficient for the whole track, instead of the surfaces' [-].
         line: ``"best"``, ``"racing"`` or ``"centre"``.
     """
-    if line not in ("best",) + _LINES:
-        raise ValueError(f"line must be one of best, {', '.join(_LINES)}, got {line!r}")
+    if line not in ("best",) + LINES:
+        raise ValueError(f"line must be one of best, {', '.join(LINES)}, got {line!r}")
     params = params or VehicleParams.load("default")
     if surface is not None:
         track = track.with_surface(surface)
@@ -786,7 +787,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--laps", type=int, default=10)
     parser.add_argument("--vehicle", default="default", help="vehicle parameter file")
     parser.add_argument("--mu-margin", type=float, default=0.85, help="fraction of mu the expert's speed profile uses")
-    parser.add_argument("--line", default="racing", choices=_LINES)
+    parser.add_argument("--line", default="racing", choices=LINES)
     parser.add_argument("--control-hz", type=float, default=50.0,
                         help="control rate [Hz] the expert drives at (the training env: 10); physics at >= 200 Hz")
     parser.add_argument("--substeps", type=int, default=None,

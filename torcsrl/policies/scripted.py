@@ -53,8 +53,8 @@ class ExpertPolicy(Policy):
         from torcsrl.envs import expert as _expert
         from torcsrl.envs.vehicle import VehicleParams
 
-        if line not in _expert._LINES:
-            raise PolicyError(f"ExpertPolicy line={line!r}; allowed: {', '.join(_expert._LINES)}")
+        if line not in _expert.LINES:
+            raise PolicyError(f"ExpertPolicy line={line!r}; allowed: {', '.join(_expert.LINES)}")
         self.params = VehicleParams.load(vehicle)
         self.mu_margin = float(mu_margin)
         self.line = line

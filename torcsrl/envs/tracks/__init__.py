@@ -32,7 +32,7 @@ from torcsrl.envs.tracks.generator import generate, generate_circuit
 from torcsrl.envs.tracks.sources import load_file
 
 __all__ = ["Track", "TrackError", "names", "load", "load_file", "generate", "generate_circuit", "track_sets", "resolve",
-           "data_dir"]
+           "data_dir", "cache_info", "clear_cache"]
 
 
 def data_dir() -> Path:
@@ -84,6 +84,16 @@ def _load_cached(name: str) -> Track:
         seed, difficulty = proc
         return generate_circuit(seed, difficulty, name=name)
     return load_file(data_dir() / f"{name}.yaml")
+
+
+def cache_info():
+    """Hits, misses, size and bound (TRACK_CACHE_SIZE) of the parsed-track cache (``functools`` cache info)."""
+    return _load_cached.cache_info()
+
+
+def clear_cache() -> None:
+    """Forget every parsed track (the next :func:`load` of each parses or generates it again)."""
+    _load_cached.cache_clear()
 
 
 def load(name: str, surface: str | None = None) -> Track:

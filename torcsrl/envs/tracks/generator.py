@@ -184,7 +184,7 @@ def seed_difficulty(seed: int) -> float:
     return float(np.random.default_rng([int(seed), _PROC_TAG, 0]).uniform(0.0, 1.0))
 
 
-def _circuit_plan(seed: int, knobs: dict) -> dict:
+def circuit_plan(seed: int, knobs: dict) -> dict:
     """The circuit's numbers: every value is drawn from the seed in a fixed order, then a given knob
     replaces its own draw (so giving one knob leaves the other draws as they were)."""
     rng = np.random.default_rng([int(seed), _PROC_TAG, 0])
@@ -676,7 +676,7 @@ def generate_circuit(seed: int, difficulty: float | None = None, *, length_m: fl
              "chicanes": chicanes, "long_straights": long_straights, "decreasing_radius": decreasing_radius,
              "narrow_sections": narrow_sections, "min_radius_m": min_radius_m}
     _check_circuit_knobs(knobs, surface)
-    plan = _circuit_plan(int(seed), knobs)
+    plan = circuit_plan(int(seed), knobs)
     sid = _surf.surface_id(surface)
     given = [f"seed={seed}"] + [f"{k}={v}" for k, v in knobs.items() if v is not None]
     source = f"generate_circuit({', '.join(given)})"
