@@ -121,7 +121,7 @@ def mean_ci(values: Sequence[float], confidence: float = 0.95) -> tuple[float, f
     if n == 1:
         return m, math.nan, 1
     sd = math.sqrt(sum((v - m) ** 2 for v in values) / (n - 1))
-    from scipy.stats import t
+    from scipy.stats import t  # deferred: scipy.stats (~0.5 s), only for a confidence interval
 
     return m, float(t.ppf(0.5 + confidence / 2, n - 1)) * sd / math.sqrt(n), n
 

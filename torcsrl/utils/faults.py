@@ -17,8 +17,10 @@
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import hashlib
 import os
+import shutil
 import signal
 import sys
 import uuid
@@ -128,8 +130,6 @@ def die_with_parent() -> None:
     """Linux: SIGTERM this process when its parent dies (``PR_SET_PDEATHSIG``), so that a SIGKILLed run
     leaves no orphaned worker behind. Elsewhere: nothing."""
     try:
-        import ctypes
-
         libc = ctypes.CDLL(None, use_errno=True)
         libc.prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG = 1
         if os.getppid() == 1:  # the parent is already gone
@@ -178,8 +178,7 @@ def claim_run_dir(run_dir: str | Path, *, resume: bool = False, overwrite: bool 
     kernel when the process ends, SIGKILL included), and a refusal to start a fresh run in a folder that holds
     another run's files unless ``resume`` (continue it) or ``overwrite`` (delete them first). Re-entrant within
     one process (``python -m torcsrl.train`` claims the folder before writing config.yaml, then ``train`` again)."""
-    import fcntl
-    import shutil
+    import fcntl  # deferred: POSIX only (the module imports on any platform)
 
     run_dir = writable_folder(run_dir, "run_dir")
     key = str(run_dir.resolve())

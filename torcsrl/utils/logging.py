@@ -43,14 +43,14 @@ def make_loggers(backends: Iterable[str], run_dir: Path, exp_name: str, wandb_pr
             if importlib.util.find_spec("tensorboard") is None:
                 print("torcsrl: tensorboard is not installed; logging to the other backends only", file=sys.stderr)
                 continue
-            from torchrl.record.loggers.tensorboard import TensorboardLogger
+            from torchrl.record.loggers.tensorboard import TensorboardLogger  # deferred: optional (tensorboard)
 
             out.append(TensorboardLogger(exp_name=exp_name, log_dir=log_dir))
         elif name == "wandb":
             if importlib.util.find_spec("wandb") is None:
                 print("torcsrl: wandb is not installed; logging to the other backends only", file=sys.stderr)
                 continue
-            from torchrl.record.loggers.wandb import WandbLogger
+            from torchrl.record.loggers.wandb import WandbLogger  # deferred: optional (wandb)
 
             out.append(WandbLogger(exp_name=exp_name, save_dir=log_dir, project=wandb_project, offline=wandb_mode == "offline"))
         else:

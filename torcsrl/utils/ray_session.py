@@ -83,7 +83,7 @@ def check_address(address: Any) -> str | None:
 def import_ray():
     """The ``ray`` module, or :class:`RayError` saying how to install it."""
     try:
-        import ray
+        import ray  # deferred: optional (the [ray] extra)
     except ImportError:
         raise RayError(f"running on Ray needs the ray package, which is not installed: {INSTALL_HINT}") from None
     return ray
@@ -109,7 +109,7 @@ def _resolve_auto() -> str:
     if env:
         return env
     try:
-        from ray._private.services import canonicalize_bootstrap_address_or_die
+        from ray._private.services import canonicalize_bootstrap_address_or_die  # deferred: optional (ray)
     except ImportError:  # pragma: no cover - Ray moved it: ray.init finds it itself
         return "auto"
     try:
