@@ -271,6 +271,7 @@ class RaceCore:
         self.finished = np.zeros(n, dtype=bool)
         self.reason = np.zeros(n, dtype=np.int64)
         self.terms = np.zeros((len(REWARD_TERMS), n))
+        self.last_steer = np.zeros(n)  # the steering command of the previous step (the steer_change reward term)
         self.rewards = np.zeros(n)
         self.terminated = np.zeros(n, dtype=bool)
         self.truncated = np.zeros(n, dtype=bool)
@@ -377,6 +378,7 @@ class RaceCore:
         self.finished[idx] = False
         self.reason[idx] = 0
         self.terms[:, idx] = 0.0
+        self.last_steer[idx] = 0.0
         self._locate(idx_reset=idx)
 
     def _draw_tracks(self, k: int) -> tuple[np.ndarray, list]:
@@ -460,6 +462,13 @@ class RaceCore:
                 np.asarray(w, dtype=np.uint8).tofile(f)
                 p.restoreState(fileName=f, physicsClientId=c)
         for k in _BOOK_FIELDS:
+            if k == "last_steer" and k not in books:  # a state saved before the steer_change term
+                self.last_steer = np.zeros(self.n)
+                continue
+            if k == "terms" and np.shape(books[k])[0] < len(REWARD_TERMS):  # the same, its terms without steer_change
+                pad = np.zeros((len(REWARD_TERMS) - np.shape(books[k])[0], self.n))
+                self.terms = np.concatenate([np.asarray(books[k], dtype=np.float64), pad])
+                continue
             setattr(self, k, np.array(books[k], copy=True))
         self.surface_pick = list(state["surface_pick"])
         self.car_tracks = [self._variant(int(self.slot[i]), self.surface_pick[i]) for i in range(self.n)]
@@ -504,11 +513,13 @@ class RaceCore:
         steer, throttle, brake = self.sanitize(action)
         if self.traffic is not None:
             steer, throttle, brake = self.traffic.actions(self, (steer, throttle, brake))
+        steer_change = np.abs(steer - self.last_steer)
+        self.last_steer = np.array(steer, dtype=np.float64)
         self.fleet.step(steer, throttle, brake)
         s_old = self.s.copy()
         self._locate()
         if self.n == 1 and self.traffic is None:
-            self._book_one(float(s_old[0]))
+            self._book_one(float(s_old[0]), float(steer_change[0]))
             self._observe()
             return
         progress = wrap_deltas(self.s, s_old, np.array([t.length for t in self.car_tracks])) if self.n > 1 \
@@ -537,13 +548,13 @@ class RaceCore:
             imp = self.fleet.contact_impulse
             self.traffic.update(self, imp if imp is not None else np.zeros((self.n, self.n)))
             race = self.traffic.terms
-        self.terms = Reward.terms(vx, self.angle, self.track_pos, progress, terminated, race)
+        self.terms = Reward.terms(vx, self.angle, self.track_pos, progress, terminated, race, steer_change)
         self.rewards = self.reward(self.terms)
         self.terminated = terminated
         self.truncated = ~terminated & ((self.steps >= self.max_steps) | self.finished)
         self._observe()
 
-    def _book_one(self, s_old: float) -> None:
+    def _book_one(self, s_old: float, steer_change: float = 0.0) -> None:
         """One car: the bookkeeping of :meth:`step` in plain floats (the same rules, in the same
         order; numpy's per-call overhead dominates arrays of one). Fields that :meth:`step`
         replaces by new arrays are replaced here too, so no caller's reference is overwritten."""
@@ -580,10 +591,14 @@ class RaceCore:
         fin = self.lap_limit is not None and int(self.lap[0]) >= self.lap_limit and not term
         self.finished = np.array([fin])
         vx = float(self.fleet.vel_body[0, 0])
-        terms = (vx * math.cos(ang), -vx * abs(math.sin(ang)), -vx * abs(tp), progress, float(term), 0.0, 0.0, 0.0, 0.0)
+        terms = (vx * math.cos(ang), -vx * abs(math.sin(ang)), -vx * abs(tp), progress, float(term), 0.0, 0.0, 0.0, 0.0,
+                 steer_change)
         self.terms = np.array(terms).reshape(len(REWARD_TERMS), 1)
         w = self.reward._w
-        self.rewards = np.array([self.reward.scale * sum(w[k] * terms[k] for k in range(len(terms)))])
+        total = sum(w[k] * terms[k] for k in range(len(self.reward._w_core)))
+        for row, wk in self.reward.extra:
+            total = total + wk * terms[row]
+        self.rewards = np.array([self.reward.scale * total])
         self.terminated = np.array([term])
         self.truncated = np.array([not term and (int(self.steps[0]) >= self.max_steps or fin)])
 
@@ -785,7 +800,7 @@ class RaceCore:
 #: RaceCore's per-car episode books, saved by :meth:`RaceCore.get_state`.
 _BOOK_FIELDS = ("slot", "s", "d", "chord", "s0", "dist_raced", "best_dist", "best_dist_time", "lap", "crossings", "time",
                 "lap_start_time", "lap_timed", "last_lap_time", "best_lap_time", "steps", "offtrack_time", "angle",
-                "track_pos", "finished", "reason", "terms", "rewards", "terminated", "truncated")
+                "track_pos", "finished", "reason", "terms", "rewards", "terminated", "truncated", "last_steer")
 
 
 class RaceEnv(gym.Env, EzPickle):

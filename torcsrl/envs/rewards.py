@@ -18,9 +18,13 @@ gap            safe-distance shortfall to the car ahead:    –
                max(0, 1 − gap / max(10 m, 1 s · v_x))
 blocking       lateral move towards the line of a car       m
                within 20 m behind (|d − d_f| shrinking)
+steer_change   |steering command − the previous step's|     action units
+               (0 on an episode's first step)
 =============  ==========================================  =====================
 
-The last four are race terms (:mod:`torcsrl.envs.traffic`; 0 without traffic). Their weights carry the sign:
+``steer_change`` is a smoothness term (a weight of −w makes a full left-to-right flip, 2 units, cost 2w per step
+before the scale); no preset weighs it, so ``reward={preset: progress, steer_change: -1}`` turns it on.
+The four before it are race terms (:mod:`torcsrl.envs.traffic`; 0 without traffic). Their weights carry the sign:
 ``race`` = ``summers_final`` + collision −1 per kN s, positions +1, gap −0.5 (Summers 2022's safe distance),
 blocking −0.5 per m.
 
@@ -42,9 +46,11 @@ from collections.abc import Mapping
 import numpy as np
 
 REWARD_TERMS: tuple[str, ...] = ("speed_cos", "speed_sin", "track_pos", "progress", "termination",
-                                  "collision", "positions", "gap", "blocking")
+                                  "collision", "positions", "gap", "blocking", "steer_change")
 #: The race terms (computed by :class:`torcsrl.envs.traffic.Traffic`), in REWARD_TERMS order.
-RACE_TERMS: tuple[str, ...] = REWARD_TERMS[5:]
+RACE_TERMS: tuple[str, ...] = REWARD_TERMS[5:9]
+#: Terms every preset leaves at weight 0 (summed apart, so that the presets' rewards stay the same to the bit).
+EXTRA_TERMS: tuple[str, ...] = REWARD_TERMS[9:]
 
 PRESETS: dict[str, dict[str, float]] = {
     "summers_initial": {"speed_cos": 1.0},
@@ -87,6 +93,10 @@ class Reward:
         if bad:
             raise ValueError(f"reward weights must be finite numbers, got {bad}; allowed: any finite weight per term of {', '.join(REWARD_TERMS)}")
         self._w = np.array([self.weights[k] for k in REWARD_TERMS])
+        n_core = len(REWARD_TERMS) - len(EXTRA_TERMS)
+        self._w_core = self._w[:n_core]
+        #: (row, weight) of each extra term with a non-zero weight
+        self.extra = [(n_core + j, self.weights[k]) for j, k in enumerate(EXTRA_TERMS) if self.weights[k] != 0.0]
         try:
             self.scale = float(scale)
         except (TypeError, ValueError):
@@ -95,18 +105,24 @@ class Reward:
             raise ValueError(f"reward_scale must be a finite number, got {scale!r}; allowed: any finite factor (e.g. 0.05)")
 
     @staticmethod
-    def terms(vx, angle, track_pos, progress, terminated, race: np.ndarray | None = None) -> np.ndarray:
+    def terms(vx, angle, track_pos, progress, terminated, race: np.ndarray | None = None,
+              steer_change: np.ndarray | None = None) -> np.ndarray:
         """All terms ``[T, N]`` in :data:`REWARD_TERMS` order, from arrays ``[N]`` (``race [4, N]``: the race
-        terms, zeros when None)."""
+        terms, zeros when None; ``steer_change [N]``: zeros when None)."""
         vx = np.asarray(vx, dtype=np.float64)
+        n = vx.shape[0]
         return np.concatenate([np.stack([
             vx * np.cos(angle),
             -vx * np.abs(np.sin(angle)),
             -vx * np.abs(track_pos),
             np.asarray(progress, dtype=np.float64),
             np.asarray(terminated, dtype=np.float64),
-        ]), np.zeros((len(RACE_TERMS), vx.shape[0])) if race is None else race])
+        ]), np.zeros((len(RACE_TERMS), n)) if race is None else race,
+            (np.zeros(n) if steer_change is None else np.asarray(steer_change, dtype=np.float64))[None]])
 
     def __call__(self, terms: np.ndarray) -> np.ndarray:
         """Scalar rewards ``[N]`` from terms ``[T, N]``."""
-        return self.scale * (self._w @ terms)
+        total = self._w_core @ terms[:len(self._w_core)]
+        for row, w in self.extra:
+            total = total + w * terms[row]
+        return self.scale * total
