@@ -101,3 +101,68 @@ def test_evaluate_multirun_feeds_report_from_dir(tmp_path, capsys):
     assert a["corruptions"]["rangefinder.dropout"]["severities"]["2"]["return"] == pytest.approx(
         b["corruptions"]["rangefinder.dropout"]["severities"]["2"]["return"])
     assert a["mrr"] == pytest.approx(b["mrr"]) and from_dir["r_random"] == pytest.approx(direct["r_random"])
+
+
+LIGHT_CHECK = """
+import sys
+from torcsrl.{app}.app import main
+assert main({argv!r}) == {rc}
+heavy = sorted(m for m in ("torch", "torchrl", "tensordict", "pybullet", "matplotlib", "numba") if m in sys.modules)
+assert not heavy, heavy
+"""
+
+
+@pytest.mark.parametrize("app,argv,rc", [
+    ("evaluate", ["--help"], 0),
+    ("evaluate", ["--laps", "many"], 2),
+    ("evaluate", ["--lapz", "3"], 2),
+    ("evaluate", ["mode=rally"], 2),
+    ("report", ["--help"], 0),
+    ("report", ["--episodes", "0"], 2),
+    ("report", ["--severities", "x"], 2),
+])
+def test_help_and_bad_arguments_load_no_heavy_module(app, argv, rc):
+    """--help and a bad argument answer before torch, TorchRL, pybullet or matplotlib load (fast, and quiet)."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", LIGHT_CHECK.format(app=app, argv=argv, rc=rc)], capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "pybullet build time" not in out.stdout + out.stderr
+
+
+def test_import_torcsrl_registers_the_env_without_pybullet_or_torch():
+    import subprocess
+    import sys
+
+    code = ("import sys, torcsrl, gymnasium as gym\n"
+            "assert not {'torch', 'pybullet'} & set(sys.modules), 'heavy import'\n"
+            "assert 'torcsrl/Race-v0' in gym.registry\n"
+            "e = gym.make('torcsrl/Race-v0', track='oval'); e.reset(seed=0); e.close()\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout == ""
+
+
+def test_evaluate_and_report_import_no_circle_and_no_private_name():
+    """Within the apps' packages each module imports the others one way only, and no module reads another's _private
+    names (grimp's graph counts function-level imports too)."""
+    import ast
+    from pathlib import Path
+
+    grimp = pytest.importorskip("grimp")
+    graph = grimp.build_graph("torcsrl")
+    for pkg in ("torcsrl.evaluate", "torcsrl.report"):
+        mods = sorted(m for m in graph.modules if m.startswith(pkg + "."))
+        for i, a in enumerate(mods):
+            for b in mods[i + 1:]:
+                both = graph.find_shortest_chain(importer=a, imported=b) and graph.find_shortest_chain(importer=b, imported=a)
+                assert not both, f"{a} and {b} import each other"
+    root = Path(__file__).resolve().parents[1] / "torcsrl"
+    files = [*root.glob("evaluate/*.py"), *root.glob("report/*.py"), *root.glob("utils/*.py"), root / "sweep.py",
+             root / "metrics.py"]
+    bad = [f"{f.name}: from {n.module} import {a.name}" for f in files for n in ast.walk(ast.parse(f.read_text()))
+           if isinstance(n, ast.ImportFrom) and (n.module or "").startswith("torcsrl") for a in n.names
+           if a.name.startswith("_") and not a.name.startswith("__")]
+    assert not bad, bad
