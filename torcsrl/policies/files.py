@@ -66,9 +66,10 @@ def ensemble_of_files(files: Sequence[str | Path], reduce: str = "mean") -> Ense
 def export_ensemble(checkpoints: list[str | Path], out: str | Path, reduce: str = "mean",
                     guard: Mapping[str, float] | None = None) -> Path:
     """Write an ensemble of checkpoints' actors (each member's weights, meta and config; no optimiser, buffer or RNG
-    state) to ONE policy file that :func:`~torcsrl.policies.load_policy` drives as :class:`EnsemblePolicy` (how a shipped driver can be
-    an ensemble). The members are checked as the spec ``a.pt+b.pt@reduce`` checks them. ``guard``: :class:`SideGuard`
-    settings (any of :attr:`SideGuard.DEFAULTS`; the rest default) the file drives behind."""
+    state) to ONE policy file that :func:`load_policy_file` (and so :func:`~torcsrl.policies.load_policy`) drives as
+    :class:`EnsemblePolicy` (how a shipped driver can be an ensemble). The members are checked as the spec
+    ``a.pt+b.pt@reduce`` checks them. ``guard``: :class:`SideGuard` settings (any of :attr:`SideGuard.DEFAULTS`; the
+    rest default) the file drives behind."""
     ens = ensemble_of_files(checkpoints, reduce)  # the checks: 2+, one layout, a known reduce
     if guard is not None:
         guard = SideGuard.from_settings(ens, guard).settings  # the checks: known keys, ranges, opponents and state read

@@ -32,7 +32,8 @@ class SideGuard(Policy):
     the racer's students close on sideways (the teacher aims at the road's centre where neither side of a car has room).
 
     Specs: ``side_guard[:<clear m>[:<gain per m>[:<edge tp>]]]:<policy spec>`` (defaults :attr:`DEFAULTS`), e.g.
-    ``side_guard:racer_safe:1.27:8:9`` or ``side_guard:3:0.05:a.pt+b.pt@medoid``; an ensemble file exported with a
+    ``side_guard:racer_safe:1.27:8:9`` or ``side_guard:3:0.05:a.pt+b.pt@medoid``, or by name (any of :attr:`DEFAULTS`),
+    ``side_guard(clear_m=3,reach_m=6):racer_safe``; an ensemble file exported with a
     guard (``python -m torcsrl.policies ensemble ... --side-guard <clear m>[:<gain>[:<edge>]]``) loads as one: the
     shipped ``reference_racer`` (the tenth version: its four students' medoid behind the default guard)."""
 

@@ -1,0 +1,1 @@
+"""Tests of :mod:`torcsrl.policies`, one module per module of the package."""
