@@ -48,7 +48,7 @@ def obs_on(td: TensorDictBase, keys: Sequence[str], device: torch.device) -> tup
     return (obs if on_cpu else [o.to(device, non_blocking=True) for o in obs]), on_cpu
 
 
-def _exploring() -> bool:
+def exploring() -> bool:
     t = exploration_type()
     return t is None or t == ExplorationType.RANDOM
 
@@ -118,7 +118,7 @@ class ActionNoise(TensorDictModuleBase):
         return 1.0 + f * (self.scale_end - 1.0)
 
     def forward(self, td: TensorDictBase) -> TensorDictBase:
-        if not _exploring():
+        if not exploring():
             return td
         a = td.get(self.action_key)
         if self.kind == "gaussian":
@@ -159,7 +159,7 @@ class StochasticBrake(TensorDictModuleBase):
         self.out_keys = [action_key]
 
     def forward(self, td: TensorDictBase) -> TensorDictBase:
-        if not _exploring():
+        if not exploring():
             return td
         a = td.get(self.action_key).clone()
         u = torch.rand(a.shape[:-1], device=a.device)
@@ -207,7 +207,7 @@ class ParamNoiseActor(TensorDictModuleBase):
         on_cpu = self._device.type == "cpu"
         if not on_cpu:
             obs = [o.to(self._device, non_blocking=True) for o in obs]
-        if not _exploring():
+        if not exploring():
             td.set(self.action_key, self.actor(*obs) if on_cpu else self.actor(*obs).to("cpu"))
             return td
         with torch.no_grad():
@@ -237,7 +237,7 @@ class PolicySample(TensorDictModuleBase):
     @torch.no_grad()
     def forward(self, td: TensorDictBase) -> TensorDictBase:
         obs, on_cpu = obs_on(td, self.in_keys, self._device)
-        a = self.actor.sample(*obs)[0] if _exploring() else self.actor(*obs)
+        a = self.actor.sample(*obs)[0] if exploring() else self.actor(*obs)
         td.set(self.action_key, a if on_cpu else a.to("cpu"))
         return td
 

@@ -24,7 +24,7 @@ from torchrl.envs import EnvBase
 from torchrl.objectives import ValueEstimators
 
 from torcsrl.agents import _build
-from torcsrl.agents.exploration import _exploring, obs_on
+from torcsrl.agents.exploration import exploring, obs_on
 from torcsrl.nets import TanhGaussianActor, ValueNet
 from torcsrl.objectives.ppo import ClipPPOLoss, PPOBatch, SquashedGaussian
 
@@ -65,7 +65,7 @@ class PPOPolicy(TensorDictModuleBase):
     def forward(self, td: TensorDictBase) -> TensorDictBase:
         obs, on_cpu = obs_on(td, self.in_keys, self._device)
         loc, scale = self.actor.dist(*obs)
-        if _exploring():
+        if exploring():
             action, log_prob = self.squash.rsample_and_log_prob(loc, scale)
         else:
             action = self.squash.mode(loc)

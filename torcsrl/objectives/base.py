@@ -12,7 +12,7 @@ Shaped like TorchRL's ``TD3Loss`` (``_AcceptedKeys``, ``actor_loss``/``value_los
 * the networks are called on plain tensors, so no TensorDict is built per forward;
 * the public ``actor_loss`` / ``value_loss`` are the fast path the training update calls: TorchRL's metaclass
   wraps every public ``*_loss`` in exploration and recurrent-mode contexts (~20 us a call), which networks called
-  on plain tensors never read, so :class:`_DirectLossMeta` leaves them as written (``forward`` stays wrapped).
+  on plain tensors never read, so :class:`DirectLossMeta` leaves them as written (``forward`` stays wrapped).
 
 What the base holds: the keys, the functional parameters and targets, the batch unpacking (DrQ shifts, asymmetric
 critic inputs), priority weights, the bootstrap ``r + gamma^n Q'`` with termination masked (truncation bootstraps),
@@ -43,7 +43,7 @@ _LOSSES = {
 }
 
 
-class _DirectLossMeta(_LossMeta):
+class DirectLossMeta(_LossMeta):
     """TorchRL's ``_LossMeta`` without its wrapper around the public ``*_loss`` methods of a class (see module docstring)."""
 
     def __init__(cls, name, bases, attr_dict):
@@ -53,7 +53,7 @@ class _DirectLossMeta(_LossMeta):
                 setattr(cls, key, value)
 
 
-class ActorCriticLoss(LossModule, metaclass=_DirectLossMeta):
+class ActorCriticLoss(LossModule, metaclass=DirectLossMeta):
     """Deterministic actor-critic loss: actor ``-Q1(s, mu(s))``, critics regressed on :meth:`target` (abstract).
 
     Args:

@@ -13,7 +13,7 @@ matmuls and Adam (``benchmarks/ppo_paths.py``). Here:
   encoder's observation scaling and running statistics (:meth:`~torcsrl.nets.ObsEncoder.prepare`; the statistics
   stand still during the epochs), and the stored action's tanh pre-image ``atanh(a)`` and change-of-variables term;
 * the public :meth:`~ClipPPOLoss.actor_loss` and :meth:`~ClipPPOLoss.value_loss` take a :class:`PPOBatch` and are the
-  update's fast path (not wrapped in TorchRL's exploration-mode contexts: :class:`~torcsrl.objectives.base._DirectLossMeta`);
+  update's fast path (not wrapped in TorchRL's exploration-mode contexts: :class:`~torcsrl.objectives.base.DirectLossMeta`);
   ``forward`` keeps TorchRL's interface (a TensorDict in, TorchRL's keys out).
 
 What is computed is TorchRL's, operation for operation and in the same order, so the floats are the same (tested:
@@ -61,7 +61,7 @@ from torchrl.objectives import ClipPPOLoss as _TorchRLClipPPOLoss
 from torchrl.objectives.utils import distance_loss
 
 from torcsrl.nets import TanhGaussianActor, ValueNet
-from torcsrl.objectives.base import _DirectLossMeta
+from torcsrl.objectives.base import DirectLossMeta
 
 _LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))  # torch's Normal.log_prob constant, computed as torch does
 
@@ -194,7 +194,7 @@ class PPOBatch:
                         self.log_det[idx], self.log_prob[idx], self.advantage[idx], self.value_target[idx])
 
 
-class ClipPPOLoss(_TorchRLClipPPOLoss, metaclass=_DirectLossMeta):
+class ClipPPOLoss(_TorchRLClipPPOLoss, metaclass=DirectLossMeta):
     """TorchRL's ``ClipPPOLoss`` over a tanh-Gaussian actor and a state-value network, computed on tensors (see the
     module docstring for what it computes and how it differs).
 

@@ -18,7 +18,7 @@ import math
 import numpy as np
 import torch
 
-from ._base import _CPU, Degradation
+from ._base import CPU, Degradation
 
 _F32 = np.float32
 _ZERO, _ONE, _TINY = _F32(0.0), _F32(1.0), _F32(1e-12)
@@ -101,10 +101,10 @@ class BeamDegradation(Degradation):
         return v
 
     def _u(self, D: int) -> np.ndarray:
-        return self.rand((D,), _CPU).numpy()
+        return self.rand((D,), CPU).numpy()
 
     def _n(self, D: int) -> np.ndarray:
-        return self.randn((D,), _CPU).numpy()
+        return self.randn((D,), CPU).numpy()
 
     def _episode_mask(self, x, key, st, reset, nb, make) -> torch.Tensor:
         """A per-episode bool mask [*B, ..., D] from ``make(x)``, kept until the env resets."""
