@@ -83,6 +83,7 @@ def is_multirun(overrides: Sequence[str]) -> bool:
 
 def compose(config_name: str, overrides: Sequence[str]):
     """``conf/<config_name>.yaml`` composed with ``overrides`` (AppError, one line, when Hydra refuses)."""
+    # deferred: Hydra and OmegaConf (~0.3 s) load when a config is composed, not for --help
     from hydra import compose as _compose
     from hydra import initialize_config_dir
     from hydra.errors import HydraException
@@ -102,7 +103,7 @@ def check_keys(cfg: Any, config_name: str, types: Mapping[str, tuple[type, ...]]
     """The app config as a plain dict (``hydra`` left out), checked against ``conf/<config_name>.yaml``:
     an unknown key (``+key=...``) and a value of the wrong type (``types``) are AppErrors naming the key
     and what is allowed. Nothing is listed twice: the known keys are the YAML's own."""
-    from omegaconf import OmegaConf
+    from omegaconf import OmegaConf  # deferred: see compose
 
     from torcsrl.config import CONF_DIR
 
@@ -130,6 +131,7 @@ def check_keys(cfg: Any, config_name: str, types: Mapping[str, tuple[type, ...]]
 def run_multirun(config_name: str, overrides: Sequence[str], job: Callable[[Any, Path], Any], prog: str) -> int:
     """Run ``job(cfg, job_folder)`` for every job of a Hydra multirun of ``conf/<config_name>.yaml``
     (``@hydra.main``: sweeps and launchers). A job's bad input ends it with one line (exit 2)."""
+    # deferred: see compose
     import hydra
     from hydra.core.hydra_config import HydraConfig
 
