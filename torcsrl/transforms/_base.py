@@ -45,6 +45,8 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Composite
 from torchrl.envs import Compose, EnvBase, Transform, TransformedEnv
 
+from torcsrl.utils.seq import as_list
+
 __all__ = [
     "Degradation",
     "DegradedEnv",
@@ -114,14 +116,6 @@ def _check_severity(severity: Any, cls_name: str) -> tuple[int, int]:
     return s, s
 
 
-def _as_list(keys) -> list:
-    if keys is None:
-        return None
-    if isinstance(keys, (str, tuple)):
-        return [keys]
-    return list(keys)
-
-
 class Degradation(Transform):
     """Base class of every sensor degradation (see the module docstring for the contract).
 
@@ -170,8 +164,8 @@ class Degradation(Transform):
     ):
         cls = type(self).__name__
         self.severity_range = _check_severity(severity, cls)
-        in_keys = _as_list(in_keys)
-        out_keys = _as_list(out_keys)
+        in_keys = as_list(in_keys, keep_none=True, atoms=(str, tuple))  # a tuple is one nested key
+        out_keys = as_list(out_keys, keep_none=True, atoms=(str, tuple))
         self._auto = in_keys is None and not self.default_in_keys
         if in_keys is None:
             in_keys = list(self.default_in_keys)
@@ -598,7 +592,7 @@ class KeepClean(Transform):
     """
 
     def __init__(self, in_keys: Sequence[str], suffix: str = "_clean", optional: bool = False):
-        in_keys = _as_list(in_keys)
+        in_keys = as_list(in_keys, keep_none=True, atoms=(str, tuple))
         out_keys = [k + suffix if isinstance(k, str) else k[:-1] + (k[-1] + suffix,) for k in in_keys]
         super().__init__(in_keys=in_keys, out_keys=out_keys)
         self.optional = optional
