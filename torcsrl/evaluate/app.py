@@ -16,7 +16,7 @@ from torcsrl.evaluate.spec import Degradation, EvalError, parse_degradation
 from torcsrl.utils.faults import cli_error, graceful_termination
 from torcsrl.utils.hydra_app import AppError, check_keys, compose, flags_to_overrides, is_multirun, run_multirun
 
-__all__ = ["FLAGS", "TYPES", "check_config", "run_config", "main", "policy_errors"]
+__all__ = ["FLAGS", "TYPES", "check_config", "run_config", "run_checked", "main", "one_torch_thread", "policy_errors"]
 
 #: The flags of earlier versions, aliases of the config's keys (conf/evaluate.yaml).
 FLAGS = {"--policy": ("policy", "one"), "--track": ("tracks", "many"), "--tracks": ("tracks", "many"),

@@ -20,6 +20,8 @@ from torcsrl.utils.faults import cli_error, graceful_termination
 from torcsrl.utils.hydra_app import AppError, check_keys, compose, flags_to_overrides, is_multirun
 from torcsrl.utils.seq import as_list
 
+__all__ = ["FLAGS", "TYPES", "check_config", "run_config", "run_checked", "main"]
+
 #: The flags of earlier versions, aliases of the config's keys (conf/report.yaml).
 FLAGS = {"--policy": ("policies", "many"), "--policies": ("policies", "many"), "--reference": ("reference", "one"),
          "--tracks": ("tracks", "many"), "--track": ("tracks", "many"), "--surfaces": ("surfaces", "many"),
