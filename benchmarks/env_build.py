@@ -27,7 +27,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 
 def build(cfg, seed: int, eager: bool):
-    from torcsrl.demos import make_demo_env
+    from torcsrl.training.demos import make_demo_env
 
     t0 = time.perf_counter()
     env = make_demo_env(cfg, seed=seed)

@@ -212,7 +212,7 @@ def _main(argv: list[str] | None = None) -> int:
     if args.train:
         from hydra import compose, initialize_config_dir
 
-        from torcsrl.train import train
+        from torcsrl.training import train
 
         for seed in args.train:
             run_dir = Path(args.out) / f"generalise_seed{seed}"

@@ -31,7 +31,7 @@ def drive(spec: str, steps: int) -> list[tuple[str, str, np.ndarray]]:
     """``(track, surface, rows [T, 10])``: 9 scaled state slots + μ per step, per training track and surface."""
     from torcsrl.envs import make_env
     from torcsrl.envs import tracks as T
-    from torcsrl.envs.sensors import obs_scale
+    from torcsrl.transforms import obs_scale
     from torcsrl.policies import EpisodeContext, load_policy
 
     pol = load_policy(spec)

@@ -25,7 +25,7 @@ sys.path.insert(0, str(ROOT))
 
 from hydra import compose, initialize_config_dir  # noqa: E402
 
-from torcsrl.train import train  # noqa: E402
+from torcsrl.training import train  # noqa: E402
 
 
 def run_seed(env: str, algo: str, seed: int, budget: int, chunk: int, overrides: list[str], out: Path,
@@ -46,7 +46,8 @@ def run_seed(env: str, algo: str, seed: int, budget: int, chunk: int, overrides:
         r = train(cfg)
         wall += time.perf_counter() - t
         frames = r["frames"]
-        from torcsrl.train import make_eval_envs, validate_all  # the same deterministic validation as in training
+        from torcsrl.pipeline import make_eval_envs
+        from torcsrl.training.common import validate_all  # the same deterministic validation as in training
         import torch
 
         from torcsrl import agents

@@ -41,7 +41,9 @@ import torch  # noqa: E402
 from hydra import compose, initialize_config_dir  # noqa: E402
 
 from torcsrl import agents  # noqa: E402
-from torcsrl.train import make_buffer, make_networks, make_train_env, plain  # noqa: E402
+from torcsrl.training.offpolicy import make_buffer  # noqa: E402
+from torcsrl.training.common import make_networks, plain
+from torcsrl.pipeline import make_train_env
 
 TRACK = ["env.track=oval", "env.procedural=null", "eval.env={}", "eval.per_track=false"]
 
@@ -62,7 +64,7 @@ def student(frames: int, updates: int, batch: int, device: torch.device) -> tupl
     """(DAgger frames/s, BC updates/s) of the camera student of experiment=camera_distill."""
     from torcsrl.agents._build import bc_step
     from torcsrl.nets import split_obs_keys
-    from torcsrl.demos import EXTRA_KEYS, label_rollouts, make_demo_env
+    from torcsrl.training.demos import EXTRA_KEYS, label_rollouts, make_demo_env
     from torcsrl.objectives.common import ObsUnpacker
     from torcsrl.utils.replay import ReplayBuffer
 

@@ -36,7 +36,8 @@ from torchrl.objectives import ValueEstimators  # noqa: E402
 from torcsrl import agents  # noqa: E402
 from torcsrl.agents import _build  # noqa: E402
 from torcsrl.objectives.ppo import probabilistic_actor  # noqa: E402
-from torcsrl.train import make_networks, make_train_env, plain  # noqa: E402
+from torcsrl.training.common import make_networks, plain  # noqa: E402
+from torcsrl.pipeline import make_train_env
 from torcsrl.utils.collector import StepCollector  # noqa: E402
 
 

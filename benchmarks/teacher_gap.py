@@ -58,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     from omegaconf import OmegaConf
     from torchrl.envs.utils import step_mdp
 
-    from torcsrl.demos import make_demo_env, make_teacher
+    from torcsrl.training.demos import make_demo_env, make_teacher
     from torcsrl.envs.traffic import TrafficError, TrafficSpec
     from torcsrl.evaluate.race import race_traffic
     from torcsrl.policies import CheckpointPolicy, EnsemblePolicy, EpisodeContext, PolicyError, SideGuard, load_policy

@@ -46,7 +46,7 @@ if os.path.isdir("/tmp/peers"):
 import torch  # noqa: E402
 from hydra import compose, initialize_config_dir  # noqa: E402
 
-from torcsrl.train import train  # noqa: E402
+from torcsrl.training import train  # noqa: E402
 from torcsrl.utils.logging import read_csv_metric  # noqa: E402
 from torcsrl.utils.threads import process_cpu_s  # noqa: E402
 
@@ -117,7 +117,7 @@ def _race_env():
     import numpy as np
 
     import torcsrl  # noqa: F401  (registers torcsrl/Race-v0)
-    from torcsrl.envs.sensors import obs_scale
+    from torcsrl.transforms import obs_scale
 
     env = gym.make("torcsrl/Race-v0", track="oval", control_hz=10, substeps=20)
     div = {k: np.asarray(obs_scale(k, env.observation_space[k].shape[-1]), dtype=np.float32) for k in ("rangefinder", "state")}

@@ -13,7 +13,7 @@ def assert_policy_history_matches_training_env(pol, cfg, steps: int, action=lamb
     from torchrl.envs.utils import step_mdp
 
     from torcsrl.envs import make_env
-    from torcsrl.train import env_kwargs, make_train_env
+    from torcsrl.pipeline import env_kwargs, make_train_env
 
     train_env = make_train_env(cfg)
     raw = make_env(**env_kwargs(cfg.env, seed=int(cfg.seed), device="cpu", max_steps=5))

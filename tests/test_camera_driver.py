@@ -78,7 +78,7 @@ def test_grip_aware_teacher_plans_its_braking_with_the_surface():
 
 
 def test_sight_limited_teacher_plans_its_speed_on_what_the_camera_can_see():
-    from torcsrl.demos import DemoError, make_teacher
+    from torcsrl.training.demos import DemoError, make_teacher
     from torcsrl.policies import PolicyError, SensorDriver, load_policy
 
     grip, sight = load_policy("sensor_grip"), load_policy("sensor_sight")
@@ -100,7 +100,7 @@ def test_sight_limited_teacher_plans_its_speed_on_what_the_camera_can_see():
 def test_fast_camera_teacher_laps_faster_within_the_same_sight():
     """sensor_fast_sight: the fast gains under the camera's 80 m of sight — faster laps than sensor_sight on asphalt
     and dirt, never planning on road it cannot see, and a bad sight fails in one line."""
-    from torcsrl.demos import DemoError, make_teacher
+    from torcsrl.training.demos import DemoError, make_teacher
     from torcsrl.evaluate import run_cell
     from torcsrl.policies import PolicyError, SensorDriver, load_policy
 
@@ -130,7 +130,7 @@ def test_fast_camera_teacher_laps_faster_within_the_same_sight():
 # ------------------------------------------------------------------ privileged distillation, end to end (tiny)
 @pytest.fixture(scope="module")
 def distilled(tmp_path_factory):
-    from torcsrl.train import train
+    from torcsrl.training import train
 
     out = tmp_path_factory.mktemp("cam") / "run"
     cfg = compose_config("experiment=camera_distill", "env.camera.height=32", "env.camera.width=32",
@@ -162,7 +162,7 @@ def test_distillation_trains_a_camera_student_from_a_privileged_teacher(distille
 
 def test_camera_student_sees_exactly_its_training_observations(distilled):
     from torcsrl.policies import CheckpointPolicy
-    from torcsrl.train import env_kwargs, make_train_env
+    from torcsrl.pipeline import env_kwargs, make_train_env
     from torcsrl.utils.checkpoint import latest_checkpoint
 
     cfg, _, out = distilled
@@ -231,7 +231,7 @@ def test_a_frame_stacked_student_trains_on_one_frame_demonstrations_and_drives_o
     """frame_stack=3: the same demonstration folder (written at one frame) trains it, DAgger included; its checkpoint
     keeps K, reads one-frame envs (check_env) and stacks them itself exactly as the training env did."""
     from torcsrl.policies import CheckpointPolicy
-    from torcsrl.train import train
+    from torcsrl.training import train
     from torcsrl.utils.checkpoint import latest_checkpoint
 
     cfg0, _, out0 = distilled
@@ -264,7 +264,7 @@ def test_a_frame_stacked_student_trains_on_one_frame_demonstrations_and_drives_o
 def test_dagger_continues_from_a_distilled_student(distilled, tmp_path):
     """init.actor with algo=dagger: round 0 validates the given student unchanged, round 1 drives it, relabels and refits."""
     from torcsrl.policies import CheckpointPolicy
-    from torcsrl.train import train
+    from torcsrl.training import train
     from torcsrl.utils.checkpoint import checkpoint_path, latest_checkpoint
 
     _, _, out0 = distilled
@@ -286,7 +286,7 @@ def test_dagger_continues_from_a_distilled_student(distilled, tmp_path):
 def test_demonstrations_load_at_any_stack_of_their_frame_size_only(distilled):
     import json
 
-    from torcsrl.demos import DemoError, load_demos
+    from torcsrl.training.demos import DemoError, load_demos
 
     _, _, out0 = distilled
     rec = json.loads((out0 / "demos" / "demos.json").read_text())["record"]

@@ -22,7 +22,7 @@ from hydra.errors import ConfigCompositionException, MissingConfigException
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 
-from torcsrl.config import ConfigError, problems, validate
+from torcsrl.training import ConfigError, problems, validate
 from torcsrl.envs import surfaces, tracks
 from torcsrl.envs.rewards import PRESETS as REWARD_PRESETS
 from torcsrl.envs.sensors import STATE_SLOTS
@@ -324,7 +324,7 @@ def test_the_command_line_fails_fast_with_the_message(tmp_path):
 
 # --------------------------------------------------------------------------------------- reproducibility
 def test_same_config_and_seed_give_the_same_metrics(tmp_path):
-    from torcsrl.train import train
+    from torcsrl.training import train
 
     torch.set_num_threads(1)
     ov = ["env=toy", "debug=smoke", "total_frames=250", "eval.every_episodes=1", "checkpoint.buffer=false",

@@ -11,11 +11,11 @@ import torch
 from omegaconf import OmegaConf, open_dict
 from tensordict import TensorDict
 
-import torcsrl.train as train_mod
-from torcsrl.config import ConfigError, validate
-from torcsrl.curriculum import Criterion, Curriculum, CurriculumError, Stage
+import torcsrl.training.offpolicy as offpolicy_mod
+from torcsrl.training import ConfigError, train, validate
+from torcsrl.training.curriculum import Criterion, Curriculum, CurriculumError, Stage
 from torcsrl.envs.surfaces import SURFACES
-from torcsrl.train import make_eval_envs, make_train_env, train
+from torcsrl.pipeline import make_eval_envs, make_train_env
 from torcsrl.utils.checkpoint import CheckpointError, load_checkpoint
 from torcsrl.utils.logging import read_csv_metric
 from torcsrl.utils.replay import ReplayBuffer
@@ -187,14 +187,14 @@ def toy(*overrides: str):
 
 def test_training_goes_through_stages_and_resumes_the_stage_exactly(tmp_path, monkeypatch):
     built = []
-    real = train_mod.make_train_env
+    real = offpolicy_mod.make_train_env
 
-    def spy(cfg, worker=-1):
-        env = real(cfg, worker)
+    def spy(cfg, worker=-1, policy_loader=None):
+        env = real(cfg, worker, policy_loader)
         built.append(getattr(env, "base_env", env).mu)
         return env
 
-    monkeypatch.setattr(train_mod, "make_train_env", spy)
+    monkeypatch.setattr(offpolicy_mod, "make_train_env", spy)
     ref = train(toy("total_frames=600", f"run_dir={tmp_path / 'ref'}"))
     assert ref["train/stage"] == 2 and ref["train/stage_name"] == "icy"
     assert built == [SURFACES[s].mu for s in ("asphalt", "wet", "ice")]  # each stage's env built with its overrides
@@ -306,7 +306,8 @@ def test_bc_refuses_a_curriculum_and_dagger_rounds_follow_its_stages(tmp_path, m
     validate(cfg)
     seen: list = []
     tracks: list = []
-    import torcsrl.demos as demos_mod
+    import torcsrl.training.demos as demos_mod
+    import torcsrl.training.imitation as imitation_mod
 
     real_demo_env = demos_mod.make_demo_env
 
@@ -317,7 +318,8 @@ def test_bc_refuses_a_curriculum_and_dagger_rounds_follow_its_stages(tmp_path, m
         assert "opponents_clean" in env.observation_spec.keys()  # the racer teacher reads the clean sectors
         return env
 
-    monkeypatch.setattr(demos_mod, "make_demo_env", spy_demo_env)
+    monkeypatch.setattr(demos_mod, "make_demo_env", spy_demo_env)  # the demonstrations
+    monkeypatch.setattr(imitation_mod, "make_demo_env", spy_demo_env)  # the DAgger rounds
     out = train(cfg)
     assert out["train/stage_name"] == "experts" and out["train/stage"] == 1
     # the demonstrations alone; then each DAgger round among 2 cars, and its rehearsal alone (curriculum.rehearse)

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from torcsrl.demos import DemoError, load_demos, write_demos
+from torcsrl.training.demos import DemoError, load_demos, write_demos
 from _compose import compose_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -44,8 +44,8 @@ def test_demos_store_the_executed_action_and_the_experts_label(demo_dir):
     assert meta["frames"] == 240 and meta["record"]["obs_layout"] == "rangefinder:19,state:11"
     assert meta["stats"]["episodes"] >= 1  # 150-step episodes: at least one ended and restarted
     cfg = cfg_for()
-    from torcsrl.demos import make_demo_env
-    from torcsrl.train import pipeline_record
+    from torcsrl.training.demos import make_demo_env
+    from torcsrl.pipeline import pipeline_record
 
     env = make_demo_env(cfg, 0)
     try:
@@ -70,8 +70,8 @@ def test_noise_free_expert_stays_on_the_road(tmp_path):
 
 def test_demos_of_another_pipeline_are_refused_in_one_line(demo_dir):
     cfg = cfg_for("env.normalize=false")
-    from torcsrl.demos import make_demo_env
-    from torcsrl.train import pipeline_record
+    from torcsrl.training.demos import make_demo_env
+    from torcsrl.pipeline import pipeline_record
 
     env = make_demo_env(cfg, 0)
     try:
@@ -85,7 +85,7 @@ def test_demos_of_another_pipeline_are_refused_in_one_line(demo_dir):
 
 
 def test_training_with_demos_bc_and_smoothness_runs_and_resumes(tmp_path, demo_dir):
-    from torcsrl.train import train
+    from torcsrl.training import train
 
     over = [f"demos.path={demo_dir}", "demos.bc_weight=0.4", "demos.pretrain_steps=30", "demos.critic_pretrain_steps=10",
             "algo.smooth.temporal=0.2", "algo.smooth.spatial=0.2", "collector.frames_per_batch=1", "total_frames=300",
@@ -135,7 +135,7 @@ def test_imitation_baselines_train_and_evaluate_like_rl_drivers(tmp_path, demo_d
     round) train, and their checkpoints drive like RL drivers'."""
     from torcsrl.evaluate import run_cell
     from torcsrl.policies import load_policy
-    from torcsrl.train import train
+    from torcsrl.training import train
     from torcsrl.utils.logging import read_csv_metric
 
     demos = f"demos.path=[{demo_dir},{other_shard}]" if algo == "bc" else f"demos.path={demo_dir}"
@@ -155,9 +155,10 @@ def test_imitation_baselines_train_and_evaluate_like_rl_drivers(tmp_path, demo_d
 def test_shards_written_apart_sample_as_one_pool(tmp_path, demo_dir, other_shard):
     """demos.path=[A, B]: shards (e.g. written on two cores with different seeds) are sampled as one pool, every
     batch in proportion to the shards' rows; an empty list or a wrong folder fails in one line."""
-    from torcsrl.config import validate
-    from torcsrl.demos import DemoPool, make_demo_env
-    from torcsrl.train import make_demos, pipeline_record
+    from torcsrl.training import validate
+    from torcsrl.training.demos import DemoPool, make_demo_env
+    from torcsrl.training.demos import make_demos
+    from torcsrl.pipeline import pipeline_record
 
     cfg = cfg_for(f"demos.path=[{demo_dir},{other_shard}]")
     env = make_demo_env(cfg, 0)
@@ -182,7 +183,7 @@ def test_shards_written_apart_sample_as_one_pool(tmp_path, demo_dir, other_shard
 
 
 def test_imitation_without_demonstrations_says_so(tmp_path):
-    from torcsrl.train import train
+    from torcsrl.training import train
 
     with pytest.raises(ValueError, match="set demos.frames > 0"):
         train(cfg_for("algo=bc", f"run_dir={tmp_path}"))
@@ -191,13 +192,13 @@ def test_imitation_without_demonstrations_says_so(tmp_path):
 def test_sensor_teacher_labels_are_a_function_of_the_stored_observation(tmp_path):
     """demos.teacher=sensor: the label of every stored row is the SensorDriver applied to that row's own
     observation (unscaled): nothing the network cannot see went into it."""
-    from torcsrl.envs.sensors import obs_scale
+    from torcsrl.transforms import obs_scale
     from torcsrl.policies import SensorDriver
 
     out = write_demos(cfg_for("demos.teacher=sensor", "demos.sigma_max=0.2", "demos.episode_steps=150"), tmp_path / "s", frames=200, seed=2)
     cfg = cfg_for()
-    from torcsrl.demos import make_demo_env
-    from torcsrl.train import pipeline_record
+    from torcsrl.training.demos import make_demo_env
+    from torcsrl.pipeline import pipeline_record
 
     env = make_demo_env(cfg, 0)
     try:
@@ -244,7 +245,7 @@ def test_pedal_expectile_leans_the_fit_towards_braking():
     from tensordict import TensorDict
 
     from torcsrl.agents._build import bc_step
-    from torcsrl.config import validate
+    from torcsrl.training import validate
 
     class Const(torch.nn.Module):  # the smallest actor: one free action
         def __init__(self):
@@ -285,8 +286,8 @@ def test_near_car_weight_leans_the_fit_to_the_rows_in_traffic():
     from tensordict import TensorDict
 
     from torcsrl.agents._build import bc_step, near_car_weights
-    from torcsrl.config import validate
-    from torcsrl.imitation import _near_car
+    from torcsrl.training import validate
+    from torcsrl.training.imitation import near_car_setting
 
     opp = torch.ones(64, 36)
     opp[:32, 7] = 5.0 / 200.0  # one car 5 m away, sector 7; the rest free (200 m = 1.0 normalised)
@@ -307,13 +308,13 @@ def test_near_car_weight_leans_the_fit_to_the_rows_in_traffic():
     assert fits[(3.0, 4.0 / 200.0)] == pytest.approx((0.0, 0.0), abs=1e-4)  # the car at 5 m is beyond a 4 m reach
     cfg = cfg_for("algo=dagger", "env.sensors=[rangefinder,state,opponents]", "algo.bc_near_car_weight=3", "algo.bc_near_car_m=20")
     validate(cfg)
-    assert _near_car(cfg, ["rangefinder", "state", "opponents"]) == pytest.approx((3.0, 0.1))
-    assert _near_car(cfg_for("algo=dagger"), ["rangefinder", "state"]) is None
+    assert near_car_setting(cfg, ["rangefinder", "state", "opponents"]) == pytest.approx((3.0, 0.1))
+    assert near_car_setting(cfg_for("algo=dagger"), ["rangefinder", "state"]) is None
     with pytest.raises(ValueError, match=r"algo.bc_near_car_weight=3 weighs the rows by the opponents sensor, which the actor "
                                          r"does not read .*allowed: 1.0, or env.sensors with opponents"):
         validate(cfg_for("algo=dagger", "algo.bc_near_car_weight=3"))
     with pytest.raises(ValueError, match=r"algo.bc_near_car_weight=3.0 weighs the rows by the opponents sensor"):
-        _near_car(cfg_for("algo=dagger", "algo.bc_near_car_weight=3"), ["rangefinder", "state"])
+        near_car_setting(cfg_for("algo=dagger", "algo.bc_near_car_weight=3"), ["rangefinder", "state"])
     with pytest.raises(ValueError, match="algo.bc_near_car_weight=3: the near-car weight shapes the imitation fit of algo=bc / dagger only"):
         validate(cfg_for("algo=td3", "env.sensors=[rangefinder,state,opponents]", "algo.bc_near_car_weight=3"))
     with pytest.raises(ValueError, match=r"algo.bc_near_car_m: 0.0 is out of range; allowed: \(0, 200\]"):
@@ -327,7 +328,7 @@ def test_a_killed_dagger_run_resumes_exactly_after_its_last_round(tmp_path, demo
     imitation runs could resume each fail in one line."""
     import shutil
 
-    from torcsrl.train import train
+    from torcsrl.training import train
     from torcsrl.utils.checkpoint import CheckpointError, latest_checkpoint, load_checkpoint, save_checkpoint
     from torcsrl.utils.logging import read_csv_metric
 
@@ -366,19 +367,19 @@ def test_a_killed_dagger_run_resumes_exactly_after_its_last_round(tmp_path, demo
 def test_dagger_fits_on_the_same_batches_without_the_next_observations(tmp_path, demo_dir, monkeypatch):
     """Imitation samples its batches without ``next`` (only CAPS's temporal term reads it): the same rows, so the
     actor is the one a fit on full transitions gives, to the bit; with ``algo.smooth.temporal`` > 0 it samples them whole."""
-    import torcsrl.demos as demos_mod
-    from torcsrl.train import train
+    import torcsrl.training.imitation as imitation_mod
+    from torcsrl.training import train
     from torcsrl.utils.checkpoint import load_checkpoint
     from torcsrl.utils.logging import read_csv_metric
 
-    real, asked = demos_mod.mixed_sample, []
+    real, asked = imitation_mod.mixed_sample, []
 
     def run(d, whole=False, *extra):
         def spy(buffers, batch_size, successor=True):
             asked.append(successor)
             return real(buffers, batch_size, True if whole else successor)
 
-        monkeypatch.setattr(demos_mod, "mixed_sample", spy)
+        monkeypatch.setattr(imitation_mod, "mixed_sample", spy)
         asked.clear()
         res = train(cfg_for("algo=dagger", f"demos.path={demo_dir}", "algo.bc_steps=20", "demos.dagger_rounds=1",
                             "demos.dagger_frames=60", "logger.every_frames=10", f"run_dir={d}", *extra))
@@ -402,9 +403,9 @@ def test_slow_rows_weigh_more_in_the_imitation_fit():
     from tensordict import TensorDict
 
     from torcsrl.agents._build import bc_step, slow_weights
-    from torcsrl.config import validate
+    from torcsrl.training import validate
     from torcsrl.envs.sensors import STATE_SLOTS
-    from torcsrl.imitation import _slow
+    from torcsrl.training.imitation import slow_setting
 
     n, v = len(STATE_SLOTS), STATE_SLOTS.index("speedX_kmh")
     state = torch.zeros(64, 2 * n)  # two readings, newest last
@@ -431,10 +432,10 @@ def test_slow_rows_weigh_more_in_the_imitation_fit():
     assert fits["both"] == pytest.approx((0.5, 0.5), abs=1e-4)  # near-car rows double in both halves: (16 (6 + 3) - 16 (2 + 1)) / 192
     cfg = cfg_for("algo=dagger", "algo.bc_slow_weight=4", "algo.bc_slow_kmh=6")
     validate(cfg)
-    assert _slow(cfg, ["rangefinder", "state"]) == pytest.approx((4.0, 0.02, v, n))
-    assert _slow(cfg_for("algo=dagger"), ["rangefinder", "state"]) is None
+    assert slow_setting(cfg, ["rangefinder", "state"]) == pytest.approx((4.0, 0.02, v, n))
+    assert slow_setting(cfg_for("algo=dagger"), ["rangefinder", "state"]) is None
     with pytest.raises(ValueError, match=r"algo.bc_slow_weight=4.0 weighs the rows by the state's speedX_kmh, which the actor does not read"):
-        _slow(cfg, ["rangefinder"])
+        slow_setting(cfg, ["rangefinder"])
     with pytest.raises(ValueError, match=r"algo.bc_slow_weight=4 weighs the rows by the race env's state .*allowed: 1.0, or env=race with state"):
         validate(cfg_for("algo=dagger", "env.sensors=[rangefinder]", "algo.bc_slow_weight=4"))
     with pytest.raises(ValueError, match="algo.bc_slow_weight=4: the slow-row weight shapes the imitation fit of algo=bc / dagger only"):

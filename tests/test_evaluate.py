@@ -128,7 +128,7 @@ def test_checkpoint_policy_scales_observations_as_training_did(tmp_path):
     """env.normalize: the actor saw sensor readings divided by sensors.obs_scale; so must evaluation."""
     from tensordict import TensorDict
 
-    from torcsrl.envs.sensors import obs_scale
+    from torcsrl.transforms import obs_scale
 
     layout = {"rangefinder": 19, "state": 11}
     on = load_policy(str(make_checkpoint(tmp_path / "on.pt", layout)))

@@ -11,7 +11,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_package_link_reaches_the_top_level_conf():
-    from torcsrl.config import CONF_DIR
+    from torcsrl.utils.hydra_app import CONF_DIR
 
     assert CONF_DIR.resolve() == (ROOT / "conf").resolve()
     assert (CONF_DIR / "train.yaml").is_file() and (CONF_DIR / "algo" / "td3.yaml").is_file()

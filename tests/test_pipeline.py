@@ -12,7 +12,7 @@ from _compose import compose_config
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
-    from torcsrl.train import train
+    from torcsrl.training import train
 
     torch.set_num_threads(1)
     out = tmp_path_factory.mktemp("pipe") / "run"
@@ -25,7 +25,7 @@ def run(tmp_path_factory):
 def test_policy_sees_exactly_the_training_observations(run):
     from torcsrl.envs import make_env
     from torcsrl.policies import CheckpointPolicy
-    from torcsrl.train import env_kwargs, make_train_env
+    from torcsrl.pipeline import env_kwargs, make_train_env
 
     cfg, ck = run
     pol = CheckpointPolicy(ck)

@@ -10,9 +10,10 @@ import pytest
 import torch
 
 from torcsrl import agents
-from torcsrl.config import ConfigError, validate
-from torcsrl.onpolicy import WorkerRollouts, make_rollout_collector, worker_config
-from torcsrl.train import make_networks, make_train_env, train
+from torcsrl.pipeline import make_train_env
+from torcsrl.training import ConfigError, train, validate
+from torcsrl.training.common import make_networks
+from torcsrl.training.onpolicy import WorkerRollouts, make_rollout_collector, worker_config
 from torcsrl.utils.logging import read_csv_metric
 from _compose import compose_config
 

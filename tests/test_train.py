@@ -12,7 +12,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from torcsrl.train import build_base_env, make_buffer, train
+from torcsrl.pipeline import build_base_env
+from torcsrl.training import train
+from torcsrl.training.offpolicy import make_buffer
 from torcsrl.utils.checkpoint import CheckpointError, load_checkpoint
 from torcsrl.utils.logging import read_csv_metric
 from _compose import compose_config
@@ -107,7 +109,8 @@ def test_worker_collector_leaves_the_learner_its_threads(tmp_path):
     """TorchRL's MultiSyncCollector sets the learner to max(1, threads - workers) unless told: make_collector tells it."""
     from torchrl.envs.utils import RandomPolicy
 
-    from torcsrl.train import make_collector, make_train_env
+    from torcsrl.pipeline import make_train_env
+    from torcsrl.training.offpolicy import make_collector
 
     cfg = cfg_for("algo=td3", "collector.num_workers=2", "threads=2")
     torch.set_num_threads(2)

@@ -11,9 +11,11 @@ import pytest
 import torch
 
 from torcsrl import agents
-from torcsrl.config import ConfigError, validate
+from torcsrl.training import ConfigError, train, validate
 from torcsrl.policies import CheckpointPolicy, export_policy
-from torcsrl.train import critic_obs_keys, make_buffer, make_eval_envs, make_networks, make_train_env, stored_keys, train
+from torcsrl.pipeline import critic_obs_keys, make_eval_envs, make_train_env, stored_keys
+from torcsrl.training.common import make_networks
+from torcsrl.training.offpolicy import make_buffer
 from torcsrl.utils.checkpoint import CheckpointError, load_checkpoint
 from torcsrl.utils.logging import read_csv_metric
 from _compose import compose_config
@@ -169,7 +171,7 @@ def test_asymmetric_td3_learns_from_demonstrations_that_keep_the_critics_keys(tm
     the actor's pixels and telemetry; a folder written for the actor alone (camera_distill's) is refused in one line."""
     import json
 
-    from torcsrl.demos import DemoError, write_demos
+    from torcsrl.training.demos import DemoError, write_demos
 
     demo = ["demos.teacher=sensor_sight", "demos.episode_steps=100", "demos.bc_weight=0.4", "demos.pretrain_steps=5"]
     r = train(compose_cfg(*SMALL, *demo, f"run_dir={tmp_path / 'run'}", "total_frames=300", "demos.frames=150"))

@@ -16,7 +16,9 @@ from hydra import compose, initialize_config_dir
 
 from torcsrl import agents
 from torcsrl.agents.exploration import DeviceActorModule
-from torcsrl.train import make_networks, make_train_env, train
+from torcsrl.pipeline import make_train_env
+from torcsrl.training import train
+from torcsrl.training.common import make_networks
 from torcsrl.utils.checkpoint import load_checkpoint
 
 CONF = str(Path(__file__).resolve().parents[1] / "conf")

@@ -10,8 +10,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from torcsrl.config import ConfigError, validate
-from torcsrl.train import train
+from torcsrl.training import ConfigError, train, validate
 from torcsrl.utils.logging import read_csv_metric
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -69,7 +68,7 @@ def test_exact_resume(tmp_path, algo, extra):
 def test_race_env_sac_with_demonstrations_and_smoothness_and_ppo_evaluate_like_the_others(tmp_path):
     """SAC learns beside demonstrations (RLPD rows, the TD3+BC term, BC pre-training) with the CAPS terms; SAC's and
     PPO's checkpoints drive as CheckpointPolicy (the mean action; PPO's observation statistics come with it)."""
-    from torcsrl.demos import write_demos
+    from torcsrl.training.demos import write_demos
     from torcsrl.policies import CheckpointPolicy
 
     demos = write_demos(cfg_for("demos.sigma_max=0.3", "demos.episode_steps=100", env="race"), tmp_path / "demos", frames=120, seed=5)

@@ -1,8 +1,11 @@
 """Checks a composed training config before anything is built, and records what a run was made from.
 
-:func:`validate` runs at the start of ``python -m torcsrl.train`` (and in the tests on every config the tree can
-compose), so a misspelt key, a wrong type, an unknown name or an out-of-range value stops the run in its first
-second with one message per problem, naming the key and what is allowed -- never after an hour of training.
+:func:`problems` gathers the checks of the config's own sections (top-level keys, ``algo``, ``logger``, ``device``,
+``threads``, the budget, what fits the algorithm) and of the subsystems below training (the observation pipeline:
+:func:`torcsrl.pipeline.check`); the training layer adds its own (demonstrations, curricula) in
+:func:`torcsrl.training.problems`, which :func:`torcsrl.training.validate` runs at the start of
+``python -m torcsrl.train`` (and the tests on every config the tree can compose), so a misspelt key, a wrong type, an
+unknown name or an out-of-range value stops the run in its first second with one message per problem, naming the key and what is allowed -- never after an hour of training.
 Hydra itself already refuses ``key=value`` overrides of keys that do not exist; this catches the rest
 (``+key=...``, keys added by experiment files, values of the wrong type, names the registries do not know).
 
@@ -19,8 +22,6 @@ the tracked files) and ``metrics.json`` (what ``train(cfg)`` returned; non-finit
 
 from __future__ import annotations
 
-import difflib
-import inspect
 import json
 import math
 import subprocess
@@ -29,20 +30,26 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
+import torch
 from omegaconf import DictConfig, OmegaConf
 
-__all__ = ["CONF_DIR", "ConfigError", "validate", "problems", "save_run_info", "write_metrics", "objective", "git_revision"]
+from torcsrl import pipeline
+from torcsrl.agents import ALGOS, IMITATION, ON_POLICY
+from torcsrl.agents._build import PRECISIONS
+from torcsrl.nets import shift_pad
+from torcsrl.pipeline import is_number as _is_num
+from torcsrl.pipeline import unknown_key as _unknown
+from torcsrl.policies import load_policy
+from torcsrl.utils.hydra_app import CONF_DIR
+from torcsrl.utils.threads import resolve_threads
 
-#: The Hydra config tree: ``conf/`` at the top of the repository, reached through the package's
-#: ``torcsrl/conf`` link (a wheel holds a copy there), so ``python -m torcsrl.train`` finds it in a
-#: checkout, an editable install and a plain ``pip install`` alike.
-CONF_DIR = Path(__file__).resolve().parent / "conf"
+__all__ = ["ConfigError", "validate", "problems", "resolve", "check", "raise_problems", "save_run_info", "write_metrics",
+           "objective", "git_revision"]
+
 #: Top-level keys beyond conf/train.yaml's own and its groups' (set by presets).
 EXTRA_TOP_KEYS = {"optimized_metric": (str, type(None))}
 #: Config sections filled by groups (checked on their own below).
 GROUP_SECTIONS = ("algo", "env", "logger", "degradation", "curriculum")
-#: env keys that train() sets itself (seed + 1000 (worker + 1), cpu).
-ENV_KEYS_SET_BY_TRAIN = ("seed", "device")
 #: (low, high, what) bounds of numbers; None = unbounded; "open" excludes the low end, "both-open" both ends.
 RANGES: dict[str, tuple[float | None, float | None, str]] = {
     "total_frames": (1, None, "closed"),
@@ -89,7 +96,6 @@ RANGES: dict[str, tuple[float | None, float | None, str]] = {
     "algo.smooth.spatial": (0.0, None, "closed"),
     "algo.smooth.spatial_sigma": (0.0, None, "closed"),
 }
-SEVERITIES = (1, 5)
 
 
 class ConfigError(ValueError):
@@ -100,39 +106,55 @@ class ConfigError(ValueError):
 # public API
 # ---------------------------------------------------------------------------------------------------------------
 def validate(cfg: DictConfig | Mapping) -> None:
-    """Raise :class:`ConfigError` listing every problem of the training config ``cfg``; return None if it is sound."""
-    found = problems(cfg)
+    """Raise :class:`ConfigError` listing every problem :func:`problems` finds in ``cfg``; return None if there is none."""
+    raise_problems(problems(cfg))
+
+
+def raise_problems(found: list[str]) -> None:
+    """Raise :class:`ConfigError` with one line per problem in ``found`` (nothing when it is empty)."""
     if found:
         head = "invalid config" + (f" ({len(found)} problems)" if len(found) > 1 else "")
         raise ConfigError(head + ":\n  " + "\n  ".join(found) if len(found) > 1 else f"{head}: {found[0]}")
 
 
 def problems(cfg: DictConfig | Mapping) -> list[str]:
-    """Every problem of ``cfg`` as ``"<key>: <message>"`` lines (empty when the config is sound)."""
+    """The problems of ``cfg`` this module gathers, as ``"<key>: <message>"`` lines (empty when none)."""
+    c, out = resolve(cfg)
+    return out if c is None else check(c)
+
+
+def resolve(cfg: DictConfig | Mapping) -> tuple[dict | None, list[str]]:
+    """``(the config as plain values, [])``, or ``(None, problems)`` when values are missing (``???``) or an
+    interpolation does not resolve: the checks of the values wait until they can be read."""
     out: list[str] = []
-    if isinstance(cfg, DictConfig):
-        for top in cfg.keys():
-            node = cfg._get_node(top)
-            if top == "hydra":
-                continue
-            if OmegaConf.is_missing(cfg, top):
-                out.append(f"{top}: must be given (it is ??? in the config); e.g. {top}=<value>")
-            elif OmegaConf.is_config(node):
-                try:
-                    missing = OmegaConf.missing_keys(node)
-                except Exception:  # noqa: BLE001 -- an interpolation of a missing value: reported where it is missing
-                    missing = set()
-                for key in sorted(missing):  # OmegaConf names them from the top already ("algo.name")
-                    full = key if str(key).startswith(f"{top}.") else f"{top}.{key}"
-                    out.append(f"{full}: must be given (it is ??? in the config); e.g. {full}=<value>")
-        if out:
-            return out  # values that interpolate them cannot be resolved yet
-        try:
-            c = {k: _container(cfg, k) for k in cfg.keys() if k != "hydra"}
-        except Exception as err:  # an interpolation that does not resolve
-            return out + [f"cannot resolve the config: {type(err).__name__}: {err}"]
-    else:
-        c = {k: v for k, v in dict(cfg).items() if k != "hydra"}
+    if not isinstance(cfg, DictConfig):
+        return {k: v for k, v in dict(cfg).items() if k != "hydra"}, out
+    for top in cfg.keys():
+        node = cfg._get_node(top)
+        if top == "hydra":
+            continue
+        if OmegaConf.is_missing(cfg, top):
+            out.append(f"{top}: must be given (it is ??? in the config); e.g. {top}=<value>")
+        elif OmegaConf.is_config(node):
+            try:
+                missing = OmegaConf.missing_keys(node)
+            except Exception:  # noqa: BLE001 -- an interpolation of a missing value: reported where it is missing
+                missing = set()
+            for key in sorted(missing):  # OmegaConf names them from the top already ("algo.name")
+                full = key if str(key).startswith(f"{top}.") else f"{top}.{key}"
+                out.append(f"{full}: must be given (it is ??? in the config); e.g. {full}=<value>")
+    if out:
+        return None, out  # values that interpolate them cannot be resolved yet
+    try:
+        return {k: _container(cfg, k) for k in cfg.keys() if k != "hydra"}, out
+    except Exception as err:  # an interpolation that does not resolve
+        return None, [f"cannot resolve the config: {type(err).__name__}: {err}"]
+
+
+def check(c: Mapping) -> list[str]:
+    """The problems of the plain training config ``c``: its own sections, then the observation pipeline's
+    (:func:`torcsrl.pipeline.check`) and the traffic opponents' policies."""
+    out: list[str] = []
     ref = _train_reference()
     # top level and the sections conf/train.yaml defines
     allowed_top = set(ref) | set(GROUP_SECTIONS) | set(EXTRA_TOP_KEYS)
@@ -153,53 +175,21 @@ def problems(cfg: DictConfig | Mapping) -> list[str]:
         if str(c["device"]) != "cpu" and _is_num(workers) and workers > 0:
             out.append(f"device: {c['device']!r} with collector.num_workers={workers}: the env processes act on the CPU copy of the "
                        "actor only in-process; allowed: collector.num_workers=0 with a GPU device, or device=cpu")
-    _check_critic_obs_keys(c, out)
-    _check_frame_stack(c, out)
-    _check_state_history(c, out)
     _check_algo_fit(c, out)
-    demos = c.get("demos")
-    if isinstance(demos, Mapping) and "teacher" in demos:
-        from torcsrl.demos import TEACHERS, known_teacher
-
-        if not known_teacher(str(demos["teacher"])):
-            out.append(f"demos.teacher: unknown teacher {demos['teacher']!r}; allowed: {', '.join(TEACHERS)}")
     if "logger" in c:
         _against(_load_ref("logger/csv.yaml"), c["logger"], "logger", out, source="conf/logger/csv.yaml")
         known = sorted(p.stem for p in (CONF_DIR / "logger").glob("*.yaml"))
         for b in c["logger"].get("backends") or []:
             if b not in known:
                 out.append(f"logger.backends: unknown backend {b!r}; allowed: {', '.join(known)}")
-    env = c.get("env")
-    if isinstance(env, Mapping):
-        _check_env(env, "env", out)
-        ev = (c.get("eval") or {}).get("env") or {}
-        if not isinstance(ev, Mapping):
-            out.append(f"eval.env: expected a mapping of env settings, got {ev!r}")
-        elif ev:
-            _check_env({**env, **ev}, "eval.env", out, only=set(ev))
-        wt = (c.get("collector") or {}).get("worker_tracks")
-        if wt is not None:
-            if not isinstance(wt, list) or not wt:
-                out.append(f"collector.worker_tracks: expected a non-empty list of tracks or null, got {wt!r}")
-            else:
-                for i, t in enumerate(wt):
-                    _check_env({**env, "track": t}, f"collector.worker_tracks[{i}]", out, only={"track"}, bare=True)
-    elif env is not None:
-        out.append(f"env: expected a mapping, got {env!r}")
-    if "degradation" in c:
-        sensors = (env or {}).get("sensors") if isinstance(env, Mapping) else None
-        _check_degradation(c["degradation"], sensors, out)
+    found = pipeline.check(c)
+    out += found
+    _check_opponent_policies(c, found, out)
     if "threads" in c:
-        from torcsrl.utils.threads import resolve_threads
-
         try:
             resolve_threads(c["threads"], 0, cores=4)
         except (ValueError, TypeError) as err:
             out.append(f"threads: {err}")
-    if c.get("curriculum") is not None:  # its stages, and every stage's config checked like this one (torcsrl/curriculum.py)
-        from torcsrl.curriculum import problems as curriculum_problems
-
-        out += curriculum_problems(cfg, list(out))
     return out
 
 
@@ -285,33 +275,6 @@ def _train_reference() -> dict:
     return _load_ref("train.yaml")
 
 
-@lru_cache(maxsize=None)
-def _env_signature(name: str) -> dict[str, inspect.Parameter]:
-    """Keyword arguments an env accepts: make_env + RaceCore (race) or make_toy_env (toy)."""
-    if name == "race":
-        from torcsrl.envs import make_env
-        from torcsrl.envs.race import RaceCore
-
-        params = dict(inspect.signature(RaceCore.__init__).parameters)
-        params.update(inspect.signature(make_env).parameters)
-    else:
-        from torcsrl.envs.toy import make_toy_env
-
-        params = dict(inspect.signature(make_toy_env).parameters)
-    return {k: p for k, p in params.items() if k != "self" and p.kind not in (p.VAR_KEYWORD, p.VAR_POSITIONAL)}
-
-
-def _unknown(path: str, key: str, allowed, source: str) -> str:
-    allowed = sorted(str(a) for a in allowed)
-    close = difflib.get_close_matches(str(key), allowed, n=1)
-    hint = f" (did you mean {path.rsplit('.', 1)[0] + '.' if '.' in path else ''}{close[0]}?)" if close else ""
-    return f"{path}: unknown key{hint}; allowed: {', '.join(allowed)} ({source})"
-
-
-def _is_num(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool)
-
-
 def _type_name(v: Any) -> str:
     return {bool: "a boolean", int: "an integer", float: "a number", str: "a string", list: "a list", dict: "a mapping"}[type(v)]
 
@@ -366,21 +329,17 @@ def _against(ref: Any, val: Any, path: str, out: list[str], skip: Sequence[str] 
 # ---------------------------------------------------------------------------------------------------------------
 # sections
 # ---------------------------------------------------------------------------------------------------------------
-#: Learning-rate schedules of one imitation fit (algo.bc_lr_schedule; torcsrl/imitation.py).
+#: Learning-rate schedules of one imitation fit (algo.bc_lr_schedule; torcsrl/training/imitation.py).
 BC_LR_SCHEDULES = ("constant", "cosine")
 
 
 def _shift_pads(algo: Any) -> tuple[int, int]:
     """``algo.encoder.augment_shift`` as (rows, cols) pads (:func:`torcsrl.nets.shift_pad`; ValueError when it is none)."""
-    from torcsrl.nets import shift_pad
-
     enc = algo.get("encoder") if isinstance(algo, Mapping) and isinstance(algo.get("encoder"), Mapping) else {}
     return shift_pad(enc.get("augment_shift", 0))
 
 
 def _check_algo(algo: Any, out: list[str]) -> None:
-    from torcsrl.agents import ALGOS
-
     ref = _load_ref("algo/base.yaml")
     per_dim = tuple(f"algo.exploration.{k}" for k in ("sigma", "theta", "mu"))
     _against(ref, algo, "algo", out, source="conf/algo/base.yaml", per_dim=per_dim, skip=("algo.encoder.augment_shift",))
@@ -390,8 +349,6 @@ def _check_algo(algo: Any, out: list[str]) -> None:
         out.append(f"algo.{err}")
     if isinstance(algo, Mapping) and algo.get("name") not in (*ALGOS, "???"):
         out.append(f"algo.name: unknown algorithm {algo.get('name')!r}; allowed: {', '.join(ALGOS)}")
-    from torcsrl.agents._build import PRECISIONS
-
     if isinstance(algo, Mapping) and "precision" in algo and algo["precision"] not in PRECISIONS:
         out.append(f"algo.precision: unknown precision {algo['precision']!r}; allowed: {', '.join(PRECISIONS)}")
     if isinstance(algo, Mapping) and algo.get("bc_lr_schedule", "constant") not in BC_LR_SCHEDULES:
@@ -401,8 +358,6 @@ def _check_algo(algo: Any, out: list[str]) -> None:
 def _check_device(device: Any, out: list[str]) -> None:
     """``device`` must name a torch device this machine has, where the networks, losses and sampled batches go: ``cpu``,
     or ``cuda`` / ``cuda:<i>`` where ``torch.cuda.is_available()`` (envs, collector and replay buffer stay on the CPU)."""
-    import torch
-
     allowed = "cpu, cuda, cuda:<i>" if torch.cuda.is_available() else "cpu (cuda where torch.cuda.is_available())"
     try:
         dev = torch.device(str(device))
@@ -419,64 +374,6 @@ def _check_device(device: Any, out: list[str]) -> None:
                    f"torch.cuda.is_available() is False); allowed: {allowed}")
     elif dev.index is not None and dev.index >= torch.cuda.device_count():
         out.append(f"device: {str(device)!r}: this machine has {torch.cuda.device_count()} CUDA device(s); allowed: {allowed}")
-
-
-def _check_critic_obs_keys(c: Mapping, out: list[str]) -> None:
-    """``critic_obs_keys`` (asymmetric actor-critic): null, or sensor names, for the actor-critic algorithms (demonstrations
-    then keep the critic's keys too: :func:`torcsrl.demos.write_demos`; folders without them are refused when loaded)."""
-    keys = c.get("critic_obs_keys")
-    if keys is None:
-        return
-    from torcsrl.agents import IMITATION
-    from torcsrl.envs.sensors import SENSOR_NAMES
-
-    if not isinstance(keys, list) or not keys or not all(isinstance(k, str) for k in keys):
-        out.append(f"critic_obs_keys: expected a non-empty list of sensors or null, got {keys!r}; allowed sensors: {', '.join(SENSOR_NAMES)}")
-        return
-    bad = [k for k in keys if k not in SENSOR_NAMES]
-    if bad:
-        out.append(f"critic_obs_keys: unknown sensor(s) {bad}; allowed: {', '.join(SENSOR_NAMES)}")
-    algo = (c.get("algo") or {}).get("name") if isinstance(c.get("algo"), Mapping) else None
-    if algo in IMITATION:
-        out.append(f"critic_obs_keys: algo={algo} has no critic; allowed: null, or an actor-critic algo (ddpg, td3, d4pg, sac)")
-
-
-def _check_frame_stack(c: Mapping, out: list[str]) -> None:
-    """``frame_stack``: an integer 1..16; above 1 the actor must see an image (pixels or depth), and PPO's value network is
-    not stacked (one frame)."""
-    from torcsrl.transforms import IMAGE_KEYS
-
-    _check_stack(c, out, "frame_stack", 16, "frames per stack", IMAGE_KEYS, "image observations",
-                 "sensors with pixels (sensors=camera | pixels | both)", "frame stacks")
-
-
-def _check_state_history(c: Mapping, out: list[str]) -> None:
-    """``state_history``: an integer 1..100; above 1 the actor must see ``state`` or ``telemetry`` (what is stacked), and
-    not with PPO (its value network sees one reading)."""
-    from torcsrl.transforms import HISTORY_KEYS
-
-    _check_stack(c, out, "state_history", 100, "readings of the on-board state", HISTORY_KEYS, "the on-board state",
-                 "sensors with state or telemetry", "histories")
-
-
-def _check_stack(c: Mapping, out: list[str], name: str, most: int, unit: str, stackable: tuple[str, ...], what: str,
-                 sensors_hint: str, plural: str) -> None:
-    """A stack setting ``name`` (``frame_stack``, ``state_history``): an integer 1..``most``; above 1 the actor must see
-    one of ``stackable`` and the algo must not be PPO."""
-    k = c.get(name, 1)
-    if k is None or isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= most:
-        out.append(f"{name}: expected an integer from 1 to {most} ({unit}), got {k!r}")
-        return
-    if k == 1:
-        return
-    env = c.get("env") if isinstance(c.get("env"), Mapping) else {}
-    keys = list(c.get("obs_keys") or env.get("sensors") or [])
-    if not any(x in stackable for x in keys):
-        out.append(f"{name}={k} stacks {what} ({', '.join(stackable)}); the actor sees {keys}: allowed: {name}=1, or {sensors_hint}")
-    algo = (c.get("algo") or {}).get("name") if isinstance(c.get("algo"), Mapping) else None
-    if algo == "ppo":
-        out.append(f"{name}={k}: algo=ppo is not built for {plural} yet; allowed: {name}=1 with algo=ppo, or an "
-                   "off-policy or imitation algo (ddpg, td3, d4pg, sac, bc, dagger)")
 
 
 def _check_algo_fit(c: Mapping, out: list[str]) -> None:
@@ -596,8 +493,6 @@ def _check_algo_fit(c: Mapping, out: list[str]) -> None:
 
 def _check_budget(c: Mapping, out: list[str]) -> None:
     """A run whose warm-up covers its whole budget makes no gradient step: refuse it (RL algorithms only)."""
-    from torcsrl.agents import IMITATION, ON_POLICY
-
     algo = c.get("algo") if isinstance(c.get("algo"), Mapping) else {}
     warmup = (c.get("learner") or {}).get("warmup_frames") if isinstance(c.get("learner"), Mapping) else None
     total = c.get("total_frames")
@@ -608,251 +503,23 @@ def _check_budget(c: Mapping, out: list[str]) -> None:
                    f"allowed: warmup_frames < total_frames (e.g. learner.warmup_frames={max(0, int(total) // 10)})")
 
 
-def _check_env(env: Mapping, path: str, out: list[str], only: set | None = None, bare: bool = False) -> None:
-    """``env`` (make_env keyword arguments + name, normalize); ``only``: report only these keys (eval.env)."""
-    name = env.get("name")
-    if name == "gym":  # benchmarks: any Gymnasium id, nothing of ours to check
+def _check_opponent_policies(c: Mapping, found: list[str], out: list[str]) -> None:
+    """Each policy a traffic opponent drives with (``env.traffic``, ``eval.env.traffic``) loads
+    (:func:`torcsrl.policies.load_policy`) and reads only what the env gives an opponent
+    (:func:`torcsrl.envs.traffic.load_opponent_policy`). Skipped where the pipeline's check already found the traffic
+    settings wrong."""
+    env = c.get("env") if isinstance(c.get("env"), Mapping) else {}
+    if env.get("name") != "race":
         return
-    if name not in ("race", "toy"):
-        out.append(f"{path}.name: unknown env {name!r}; allowed: race, toy")
-        return
-
-    def key(k: str) -> str:
-        return path if bare else f"{path}.{k}"
-
-    def mine(k: str) -> bool:
-        return only is None or k in only
-
-    sig = _env_signature(name)
-    race_sig = _env_signature("race")
-    allowed = (set(sig) | {"name", "normalize"}) - set(ENV_KEYS_SET_BY_TRAIN)
-    for k, v in env.items():
-        if not mine(k) or k in allowed:
+    ev = (c.get("eval") or {}).get("env") if isinstance(c.get("eval"), Mapping) else None
+    for path, traffic in (("env.traffic", env.get("traffic")), ("eval.env.traffic", ev.get("traffic") if isinstance(ev, Mapping) else None)):
+        if traffic is None or any(line.startswith(f"{path}:") for line in found):
             continue
-        if k in ENV_KEYS_SET_BY_TRAIN:
-            out.append(f"{key(k)}: set by train itself (env seed = seed + 1000 (worker + 1), device cpu); use seed=... / device=...")
-        elif name == "toy" and k in race_sig and v is None:
-            continue  # race-only knobs left at null (vehicle, reward_scale, ...) do not reach the toy env
-        elif name == "toy" and k in race_sig:
-            out.append(f"{key(k)}: the toy env has no {k!r} (race env only); allowed for env=toy: {', '.join(sorted(allowed))}")
-        else:
-            out.append(_unknown(key(k), k, allowed, f"torcsrl.envs.{'make_env / RaceCore' if name == 'race' else 'toy.make_toy_env'}"))
-    # numbers and flags: typed by the signature's defaults
-    for k, v in env.items():
-        if not mine(k) or k not in sig or v is None:
-            continue
-        d = sig[k].default
-        if isinstance(d, bool) and not isinstance(v, bool):
-            out.append(f"{key(k)}: expected a boolean, got {v!r}")
-        elif _is_num(d) and not _is_num(v):
-            out.append(f"{key(k)}: expected {'an integer' if isinstance(d, int) else 'a number'}, got {v!r}")
-    if "normalize" in env and mine("normalize") and not isinstance(env["normalize"], bool):
-        out.append(f"{key('normalize')}: expected a boolean, got {env['normalize']!r}")
-    for k in ("num_cars", "max_steps", "substeps"):
-        v = env.get(k)
-        if mine(k) and v is not None and _is_num(v) and (int(v) != v or v < 1):
-            out.append(f"{key(k)}: must be a positive integer, got {v!r}")
-    v = env.get("lap_limit")
-    if mine("lap_limit") and v is not None and (not _is_num(v) or int(v) != v or v < 1):
-        out.append(f"{key('lap_limit')}: must be a positive integer or null, got {v!r}")
-    if name == "race":
-        _check_race_env(env, key, mine, out)
-    else:
-        _check_toy_env(env, path, key, mine, out)
-
-
-def _check_race_env(env: Mapping, key, mine, out: list[str]) -> None:
-    from torcsrl.envs import surfaces, tracks
-    from torcsrl.envs.race import ACTION_MODES, START_MODES
-    from torcsrl.envs.rewards import Reward
-    from torcsrl.envs.sensors import check_sensors
-
-    if mine("track") and env.get("track") is not None:
-        try:
-            tracks.resolve(list(env["track"]) if isinstance(env["track"], list) else env["track"])
-        except (ValueError, tracks.TrackError) as err:
-            sets = ", ".join(f"set:{s}" for s in sorted(tracks.track_sets()))
-            out.append(f"{key('track')}: {err}; sets: {sets}; or a list of those")
-    if mine("procedural") and env.get("procedural") is not None:
-        from torcsrl.envs.tracks.procedural import ProceduralSpec
+        # the race env's traffic module (pybullet) only when a config has traffic
+        from torcsrl.envs.traffic import TrafficError, TrafficSpec, load_opponent_policy
 
         try:
-            ProceduralSpec.from_config(env["procedural"])
-        except (ValueError, TypeError) as err:
-            out.append(f"{key('procedural')}: {err}")
-    if mine("surface"):
-        for s in _as_list(env.get("surface")):
-            if s is not None and s not in surfaces.ROAD_SURFACES:
-                out.append(f"{key('surface')}: unknown surface {s!r}; allowed: {', '.join(surfaces.ROAD_SURFACES)} "
-                           "(a list: one drawn per episode; null: each track's own)")
-    if mine("sensors") and env.get("sensors") is not None:
-        try:
-            check_sensors(env["sensors"])
-        except ValueError as err:
-            out.append(f"{key('sensors')}: {err}")
-    if mine("reward") and env.get("reward") is not None:
-        try:
-            Reward(env["reward"], 1.0)
-        except (ValueError, TypeError) as err:
-            out.append(f"{key('reward')}: {err}")
-    if mine("reward_scale") and env.get("reward_scale") is not None:
-        try:
-            Reward("summers_final", env["reward_scale"])
-        except (ValueError, TypeError) as err:
-            out.append(f"{key('reward_scale')}: {err}")
-    from torcsrl.envs.race import episode_setting_problems
-
-    given = {k: env[k] for k in ("spawn_jitter", "offtrack_grace_s", "no_progress_s", "backwards_m") if k in env and mine(k)}
-    for k, msg in episode_setting_problems(**given):
-        out.append(f"{key(k)}: {msg}")
-    if mine("start") and env.get("start") is not None and env["start"] not in START_MODES:
-        out.append(f"{key('start')}: unknown start {env['start']!r}; allowed: {', '.join(START_MODES)}")
-    if mine("action_mode") and env.get("action_mode") is not None and env["action_mode"] not in ACTION_MODES:
-        out.append(f"{key('action_mode')}: unknown action_mode {env['action_mode']!r}; allowed: {', '.join(ACTION_MODES)}")
-    if mine("vehicle") and env.get("vehicle") is not None:
-        from torcsrl.envs.vehicle import available_vehicles
-
-        if env["vehicle"] not in available_vehicles():
-            out.append(f"{key('vehicle')}: unknown vehicle {env['vehicle']!r}; allowed: {', '.join(available_vehicles())}")
-    if mine("vehicle_overrides") and env.get("vehicle_overrides"):
-        import dataclasses
-
-        from torcsrl.envs.vehicle import VehicleParams
-
-        fields = {f.name for f in dataclasses.fields(VehicleParams)} - {"name"}
-        vo = env["vehicle_overrides"]
-        if not isinstance(vo, Mapping):
-            out.append(f"{key('vehicle_overrides')}: expected a mapping {{parameter: value}}, got {vo!r}")
-        else:
-            for k in vo:
-                if k not in fields:
-                    out.append(_unknown(f"{key('vehicle_overrides')}.{k}", k, fields, "torcsrl.envs.vehicle.VehicleParams"))
-    if mine("camera"):
-        _check_camera(env.get("camera"), key("camera"), out)
-    if mine("traffic") and env.get("traffic") is not None:
-        from torcsrl.envs.traffic import TrafficError, TrafficSpec, _load_opponent_policy
-
-        try:
-            spec = TrafficSpec.from_config(env["traffic"])
-            for pol in spec.policy_specs():
-                _load_opponent_policy(pol)
+            for spec in TrafficSpec.from_config(traffic).policy_specs():
+                load_opponent_policy(spec, load_policy)
         except TrafficError as err:
-            out.append(f"{key('traffic')}: {err}")
-
-
-def _check_camera(cam: Any, path: str, out: list[str]) -> None:
-    if cam is None:
-        return
-    if not isinstance(cam, Mapping):
-        out.append(f"{path}: expected a mapping of camera settings or null, got {cam!r}")
-        return
-    from torcsrl.envs.camera import MOUNTS, RENDERERS, CarCameras
-
-    params = {k: p for k, p in inspect.signature(CarCameras.__init__).parameters.items() if k not in ("self", "client_id", "sim")}
-    for k, v in cam.items():
-        if k not in params:
-            out.append(_unknown(f"{path}.{k}", k, params, "torcsrl.envs.camera.CarCameras"))
-        elif k in ("height", "width", "every") and not (_is_num(v) and int(v) == v and v >= 1):
-            out.append(f"{path}.{k}: must be a positive integer, got {v!r}")
-        elif k == "mount" and isinstance(v, str) and v not in MOUNTS:
-            out.append(f"{path}.mount: unknown mount {v!r}; allowed: {', '.join(MOUNTS)}")
-        elif k == "renderer" and isinstance(v, str) and v not in RENDERERS:
-            out.append(f"{path}.renderer: unknown renderer {v!r}; allowed: {', '.join(RENDERERS)}")
-
-
-def _check_toy_env(env: Mapping, path: str, key, mine, out: list[str]) -> None:
-    """The toy env checks its own arguments and is cheap to build: build it (no pybullet)."""
-    from torcsrl.envs import surfaces
-    from torcsrl.envs.toy import TRACKS, make_toy_env
-
-    sig = _env_signature("toy")
-    if mine("track") and env.get("track") is not None and (not isinstance(env["track"], str) or env["track"] not in TRACKS):
-        out.append(f"{key('track')}: unknown toy track {env['track']!r}; allowed for env=toy: {', '.join(TRACKS)} "
-                   "(the race env's tracks, sets and lists need env=race)")
-        return
-    s = env.get("surface")
-    if mine("surface") and s is not None and (not isinstance(s, str) or s not in surfaces.ROAD_SURFACES):
-        out.append(f"{key('surface')}: the toy env takes one surface of {', '.join(surfaces.ROAD_SURFACES)} or null, got {s!r} "
-                   "(lists drawn per episode need env=race)")
-        return
-    if mine("camera") and isinstance(env.get("camera"), Mapping):
-        _check_camera(env["camera"], key("camera"), out)
-    kw = {k: v for k, v in env.items() if k in sig and v is not None and k not in ENV_KEYS_SET_BY_TRAIN}
-    if "sensors" in kw:
-        kw["sensors"] = tuple(kw["sensors"]) if isinstance(kw["sensors"], list) else kw["sensors"]
-    built_from = {"sensors", "reward", "start", "num_cars", "max_steps", "lap_limit", "dt", "camera"}
-    if not any(mine(k) for k in built_from):
-        return
-    try:
-        make_toy_env(**kw).close()
-    except (ValueError, TypeError) as err:
-        what = next((k for k, word in (("sensors", "sensor"), ("reward", "reward"), ("start", "start"), ("track", "track"))
-                     if word in str(err)), None)
-        out.append(f"{key(what) if what else path}: {err}")
-
-
-def _check_degradation(deg: Any, sensors: Any, out: list[str]) -> None:
-    from torcsrl.transforms import make_stack
-    from torcsrl.transforms.registry import PRESETS, applies_to
-
-    if deg is None:
-        return
-    if not isinstance(deg, Mapping):
-        out.append(f"degradation: expected a mapping {{severity, stack}}, got {deg!r}")
-        return
-    for k in deg:
-        if k not in ("severity", "stack"):
-            out.append(_unknown(f"degradation.{k}", k, ("severity", "stack"), "conf/degradation/none.yaml"))
-    _check_severity(deg.get("severity"), "degradation.severity", out)
-    stack = deg.get("stack") or {}
-    if not isinstance(stack, Mapping):
-        out.append(f"degradation.stack: expected a mapping of named entries (name: {{name, severity, ...}}), got {stack!r}")
-        return
-    sensors = set(sensors or ())
-    for label, entry in stack.items():
-        path = f"degradation.stack.{label}"
-        if entry is None:
-            continue  # dropped by an override
-        e = {"name": entry} if isinstance(entry, str) else entry
-        if not isinstance(e, Mapping):
-            out.append(f"{path}: expected a degradation name or a mapping {{name, severity, ...}}, got {entry!r}")
-            continue
-        if "severity" in e and not _check_severity(e["severity"], f"{path}.severity", out):
-            continue
-        try:
-            make_stack({label: dict(e)}, seed=0)
-        except (ValueError, TypeError) as err:
             out.append(f"{path}: {err}")
-            continue
-        name = e.get("name", label)
-        if e.get("optional") or not sensors or e.get("enabled", True) is False:
-            continue
-        if isinstance(name, str) and name.startswith("weather."):
-            keys = {k for c, _, kw in PRESETS[name.split(".", 1)[1]] for k in kw.get("in_keys", applies_to(c)[:1])}
-        elif e.get("keys"):
-            keys = set(e["keys"])
-        else:
-            try:
-                keys = set(applies_to(name))
-            except ValueError:  # a bare effect name: make_stack resolved it with keys
-                continue
-        if not keys & sensors:
-            out.append(f"{path}: {name} degrades {', '.join(sorted(keys))}, which env.sensors ({', '.join(sorted(sensors))}) "
-                       "does not include; choose sensors=pixels or both, another degradation, or optional: true")
-
-
-def _check_severity(sev: Any, path: str, out: list[str]) -> bool:
-    """A severity is an integer in 1..5 or a range [lo, hi] within it (drawn per episode); None = the default."""
-    lo, hi = SEVERITIES
-
-    def one(v: Any) -> bool:
-        return isinstance(v, int) and not isinstance(v, bool) and lo <= v <= hi
-
-    if sev is None or one(sev) or (isinstance(sev, list) and len(sev) == 2 and all(map(one, sev)) and sev[0] <= sev[1]):
-        return True
-    out.append(f"{path}: severity must be an integer in {lo}..{hi} or a range [lo, hi] within it, got {sev!r}")
-    return False
-
-
-def _as_list(x: Any) -> list:
-    return list(x) if isinstance(x, (list, tuple)) else [x]

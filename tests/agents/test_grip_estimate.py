@@ -34,7 +34,7 @@ def _batch(n=256, seed=0):
     """Rows where mu is a function of the observation (slot 0) and the label does not depend on mu."""
     from tensordict import TensorDict
 
-    from torcsrl.demos import PRIVILEGED_SLOTS
+    from torcsrl.envs.sensors import PRIVILEGED_SLOTS
 
     g = torch.Generator().manual_seed(seed)
     state = torch.rand(n, 6, generator=g) * 2 - 1
@@ -105,7 +105,7 @@ def test_a_grip_student_trains_logs_its_estimate_and_drives_from_its_checkpoint(
     """A DAgger student with a state history and a grip head: loss/grip is logged, the checkpoint rebuilds the head and
     drives a one-reading env feeding its actor exactly what the training env fed it; teacher_gap prints its estimate."""
     from torcsrl.policies import CheckpointPolicy
-    from torcsrl.train import train
+    from torcsrl.training import train
     from torcsrl.utils.checkpoint import latest_checkpoint
 
     cfg = compose_config(*RACE, "algo=dagger", "state_history=4", "algo.grip_estimate=1.0", "algo.grip_hidden=[8]",
@@ -138,7 +138,7 @@ def test_a_grip_student_trains_logs_its_estimate_and_drives_from_its_checkpoint(
     (["algo=dagger", "state_history=4", "algo.actor_readings=2"], r"shape a grip head, which algo.grip_estimate=0.0 does not build"),
 ])
 def test_a_grip_head_that_cannot_learn_is_one_line(over, msg):
-    from torcsrl.config import problems
+    from torcsrl.training import problems
 
     found = [p for p in problems(compose_config(*RACE, *over)) if "grip" in p or "actor_readings" in p]
     assert len(found) == 1 and "\n" not in found[0], found
@@ -148,8 +148,8 @@ def test_a_grip_head_that_cannot_learn_is_one_line(over, msg):
 def test_demonstrations_without_privileged_mu_are_refused_in_one_line(tmp_path):
     import json
 
-    from torcsrl.demos import DemoError, write_demos
-    from torcsrl.train import train
+    from torcsrl.training.demos import DemoError, write_demos
+    from torcsrl.training import train
 
     base = compose_config(*RACE, "algo=dagger")
     write_demos(base, tmp_path / "d", frames=30, seed=1)

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 from _faults import cfg_for
 
-from torcsrl.train import train
+from torcsrl.training import train
 from torcsrl.utils.checkpoint import CheckpointError, list_checkpoints, load_checkpoint
 
 
@@ -84,7 +84,7 @@ def test_truncated_replay_memmap_fails_and_is_left_as_it_was(run, tmp_path):
 
 
 def test_flipped_bytes_in_a_buffer_dump(run, tmp_path):
-    from torcsrl.train import make_buffer
+    from torcsrl.training.offpolicy import make_buffer
 
     d = _copy(run, tmp_path)
     newest = list_checkpoints(d / "checkpoints")[-1]

@@ -8,7 +8,7 @@ import pytest
 import torch
 from _faults import cfg_for
 
-from torcsrl.config import ConfigError, validate
+from torcsrl.training import ConfigError, validate
 
 
 def test_unknown_device_is_refused():
@@ -19,7 +19,7 @@ def test_unknown_device_is_refused():
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
 def test_cuda_on_a_cpu_only_torch_is_refused_before_training(tmp_path):
-    from torcsrl.train import train
+    from torcsrl.training import train
 
     with pytest.raises(ConfigError, match=r"device: 'cuda' is not available on this machine.*allowed: cpu") as e:
         train(cfg_for("device=cuda", f"run_dir={tmp_path / 'run'}"))

@@ -11,7 +11,7 @@ import pytest
 from _faults import ENV, ROOT, cfg_for, one_line, one_line_error, run_cli, run_main
 
 from torcsrl.envs import tracks
-from torcsrl.train import make_buffer
+from torcsrl.training.offpolicy import make_buffer
 
 
 # ---------------------------------------------------------------- evaluate's flags
@@ -56,7 +56,7 @@ def test_train_run_dir_that_cannot_be_written(tmp_path):
 
 
 def test_train_buffer_path_that_cannot_be_written(tmp_path):
-    from torcsrl.train import train
+    from torcsrl.training import train
     from torcsrl.utils.faults import OutputError
 
     (tmp_path / "file").write_text("not a folder")
@@ -90,7 +90,7 @@ def test_evaluate_on_a_full_disk_is_one_line(tmp_path):
 
 # ---------------------------------------------------------------- a buffer folder with rows/ missing
 def test_buffer_folder_without_rows(tmp_path):
-    from torcsrl.train import train
+    from torcsrl.training import train
 
     cfg = cfg_for("algo=td3")
     r = train(cfg_for("algo=td3", f"run_dir={tmp_path / 'run'}", "total_frames=200", "buffer.save_at_end=true"))
@@ -149,7 +149,7 @@ def test_spawn_jitter_of_one_number():
     with pytest.raises(ValueError, match=r"spawn_jitter must be two finite half-ranges") as e:
         make_env(track="oval", spawn_jitter=(1,))
     assert "\n" not in str(e.value)
-    from torcsrl.config import problems
+    from torcsrl.training import problems
 
     assert any(p.startswith("env.spawn_jitter:") for p in problems(cfg_for("env.spawn_jitter=[1]", toy=False)))
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 from _faults import cfg_for
 
-from torcsrl.train import train
+from torcsrl.training import train
 from torcsrl.utils.checkpoint import CheckpointError
 
 

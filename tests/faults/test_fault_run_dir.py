@@ -10,7 +10,7 @@ import time
 import pytest
 from _faults import ENV, ROOT, cfg_for, one_line_error, run_cli
 
-from torcsrl.train import train
+from torcsrl.training import train
 from torcsrl.utils.checkpoint import CheckpointError
 from torcsrl.utils.faults import RunDirError
 from torcsrl.utils.logging import read_csv_metric

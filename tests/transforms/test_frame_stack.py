@@ -133,7 +133,7 @@ def test_a_frame_stacked_pixel_td3_run_resumes_exactly(tmp_path):
     run's next line too."""
     from _compose import compose_config
 
-    from torcsrl.train import train
+    from torcsrl.training import train
     from torcsrl.utils.logging import read_csv_metric
 
     def run(*ov):

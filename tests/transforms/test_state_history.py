@@ -37,7 +37,7 @@ def test_the_training_env_and_the_checkpoints_own_history_agree_across_a_reset(t
     the one-reading env (obs_shapes: state [11]) and, keeping the history itself (scaled, then stacked), feeds its actor
     exactly what the training env fed it, across an episode's end."""
     from torcsrl.policies import CheckpointPolicy
-    from torcsrl.train import train
+    from torcsrl.training import train
     from torcsrl.utils.checkpoint import latest_checkpoint
 
     cfg = compose_config(*RACE, "algo=dagger", "state_history=4", "demos.frames=120", "algo.bc_steps=10",
@@ -55,8 +55,8 @@ def test_the_training_env_and_the_checkpoints_own_history_agree_across_a_reset(t
 
 
 def test_demonstrations_of_another_history_are_refused_in_one_line(tmp_path):
-    from torcsrl.demos import DemoError, load_demos, make_demo_env, write_demos
-    from torcsrl.train import pipeline_record
+    from torcsrl.training.demos import DemoError, load_demos, make_demo_env, write_demos
+    from torcsrl.pipeline import pipeline_record
 
     write_demos(compose_config(*RACE, "state_history=3"), tmp_path / "d", frames=30, seed=1)
     cfg = compose_config(*RACE)
@@ -77,7 +77,7 @@ def test_demonstrations_of_another_history_are_refused_in_one_line(tmp_path):
 def test_a_history_the_actor_cannot_have_is_one_line(over, msg):
     import re
 
-    from torcsrl.config import problems
+    from torcsrl.training import problems
 
     found = problems(compose_config(*RACE, *over))
     assert any(re.search(msg, line) for line in found), found

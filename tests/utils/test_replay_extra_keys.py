@@ -66,7 +66,7 @@ def test_a_dump_is_a_function_of_the_steps_written_not_of_uninitialised_memory(t
 def test_sampling_without_the_successor_draws_the_same_rows_and_leaves_next_out():
     """``successor=False`` (imitation's batches): the same random rows as a full sample, every key of the step itself
     equal, no ``next``; so a DAgger fit that skips ``next`` trains on the very batches it did before."""
-    from torcsrl.demos import DemoPool, mixed_sample
+    from torcsrl.training.demos import DemoPool, mixed_sample
 
     bufs = []
     for n in (30, 12, 9):

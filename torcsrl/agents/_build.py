@@ -17,6 +17,7 @@ from torchrl.envs import EnvBase
 from torchrl.objectives import LossModule, SoftUpdate
 
 from torcsrl.agents.exploration import ActionNoise, BehaviourPolicy, DeviceActorModule, ParamNoiseActor, StochasticBrake
+from torcsrl.envs.sensors import PRIVILEGED_SLOTS
 from torcsrl.nets import Critic, DeterministicActor, ObsEncoder, shift_pad, split_obs_keys
 
 
@@ -298,7 +299,7 @@ def bc_step(loss: LossModule, optim: dict, batch, precision: str = "float32", re
     terms of ``reg`` (the ``algo`` config; :func:`actor_regularisers`) when they are on.
 
     ``aux=(head, weight)`` adds ``weight * mean |head(features) - privileged|^2``: the actor's encoder features
-    regress the teacher's privileged view stored in the batch (:data:`torcsrl.demos.PRIVILEGED_SLOTS`), an
+    regress the teacher's privileged view stored in the batch (:data:`torcsrl.envs.sensors.PRIVILEGED_SLOTS`), an
     auxiliary task that makes a camera encoder learn the road's geometry; the head is not part of the actor.
 
     ``reg.bc_pedal_expectile`` = tau != 0.5 fits the pedal (action 1) by expectile regression: an error above the
@@ -355,8 +356,6 @@ def bc_step(loss: LossModule, optim: dict, batch, precision: str = "float32", re
             total = total + float(weight) * la
             extra = {**extra, "loss/aux": la.detach()}
         if grip is not None:
-            from torcsrl.demos import PRIVILEGED_SLOTS
-
             i = PRIVILEGED_SLOTS.index("surfaceMu")
             mu = batch.get("privileged")[..., i:i + 1]
             lg = (grip.float() - mu).pow(2).mean()

@@ -20,10 +20,12 @@ race (``traffic``) are seen; without traffic every sector reads 200.
 board (speeds, wheel spin, rpm, gear) — without ``angle_rad`` and ``trackPos``, which need a map of the
 track. With ``pixels`` it makes the camera-only observation set (``sensors=camera``).
 
-Normalised versions (as the studies fed their networks): divide each key by
-:func:`obs_scale` — rangefinder / 200 m (so [0, 1], −1/200 off track), angle / π, trackPos as is,
+Normalised versions (as the studies fed their networks) divide each key by the scales here (:data:`RANGE_M`,
+:data:`STATE_SCALE`) — rangefinder / 200 m (so [0, 1], −1/200 off track), angle / π, trackPos as is,
 speeds / 300 km/h, wheel spin / 150 rad/s, rpm / 10,000, gear / 6 — which maps a lap at racing
-speed into about [−1, 1]. :func:`normalize_transform` builds the TorchRL transform that does it.
+speed into about [−1, 1]. The transform that does it is :func:`torcsrl.transforms.normalize_transform`.
+
+**privileged** ``[22]`` (demonstration rows only, :data:`PRIVILEGED_SLOTS`): a teacher's clean view of the road.
 """
 
 from __future__ import annotations
@@ -73,6 +75,10 @@ STATE_BOUNDS: dict[str, tuple[float, float]] = {
 }
 MS_TO_KMH = 3.6
 SENSOR_NAMES: tuple[str, ...] = ("rangefinder", "state", "telemetry", "pixels", "depth", "opponents")
+#: What ``privileged`` holds per demonstration row: the teacher's clean view of the road, normalised to ~[-1, 1] —
+#: the 19 rangefinder beams / 200 m (-1/200 off track), the angle to the track axis / pi, trackPos, and the friction
+#: under the wheels ``info/surfaceMu``. A camera student regresses it as an auxiliary target (``algo.aux_privileged``).
+PRIVILEGED_SLOTS: tuple[str, ...] = tuple(f"track_{i}" for i in range(19)) + ("angle", "trackPos", "surfaceMu")
 
 
 def check_sensors(sensors) -> tuple[str, ...]:
@@ -86,29 +92,6 @@ def check_sensors(sensors) -> tuple[str, ...]:
     if len(set(sensors)) != len(sensors):
         raise ValueError(f"sensors listed twice: {sensors}")
     return sensors
-
-
-def obs_scale(key: str, n_beams: int = len(RANGEFINDER_ANGLES_DEG)) -> np.ndarray:
-    """Divisors that normalise observation ``key`` (rangefinder, state or telemetry)."""
-    if key == "rangefinder":
-        return np.full(n_beams, RANGE_M, dtype=np.float32)
-    if key == "opponents":
-        return np.full(36, 200.0, dtype=np.float32)
-    if key in ("state", "telemetry"):
-        return np.array([STATE_SCALE[s] for s in (STATE_SLOTS if key == "state" else TELEMETRY_SLOTS)], dtype=np.float32)
-    raise ValueError(f"no scale for {key!r}; scales exist for rangefinder, state, telemetry and opponents")
-
-
-def normalize_transform(keys=("rangefinder", "state"), n_beams: int = len(RANGEFINDER_ANGLES_DEG)):
-    """A TorchRL ``Compose`` of ``ObservationNorm`` dividing each key by :func:`obs_scale`."""
-    import torch
-    from torchrl.envs.transforms import Compose, ObservationNorm
-
-    ts = []
-    for k in keys:
-        scale = torch.as_tensor(1.0 / obs_scale(k, n_beams))
-        ts.append(ObservationNorm(loc=torch.zeros_like(scale), scale=scale, in_keys=[k], standard_normal=False))
-    return Compose(*ts)
 
 
 #: pybullet 3.2.x never releases the sequences passed as ``vertices=`` / ``indices=`` to ``createCollisionShape``

@@ -19,6 +19,7 @@ the transforms with ``seed=`` or :func:`seed_degradations`.
 
 Modules: ``_base`` (contract, seeding, :class:`KeepClean`, :class:`DegradedEnv`),
 ``rangefinder``, ``state``, ``camera``, ``temporal`` (latency, dropped frames/scans), ``frame_stack`` (the actor's K frames; not a degradation),
+``normalize`` (the sensors' scaling into about [-1, 1]; not a degradation),
 ``registry`` (names, held-out group, presets, stacks from config), ``synthetic`` (stand-in
 camera frame, depth and scans), ``gallery`` (``python -m torcsrl.transforms.gallery``).
 """
@@ -29,6 +30,7 @@ from ._base import (
     DegradedEnv,
     KeepClean,
     LeanTransformedEnv,
+    check_severity,
     derive_seed,
     seed_degradations,
     seed_degradation_rows,
@@ -76,6 +78,7 @@ from .registry import (
     sensor_of_key,
 )
 from .frame_stack import HISTORY_KEYS, IMAGE_KEYS, FrameStack, stack_frames
+from .normalize import NORMALIZED_KEYS, normalize_transform, obs_scale
 from .state import StateBias, StateDegradation, StateDropout, StateNoise
 from .temporal import FrameDrop, Hold, Latency, ScanDrop
 
@@ -86,6 +89,7 @@ __all__ = [
     "KeepClean",
     "LeanTransformedEnv",
     "SENSOR_KEYS",
+    "check_severity",
     "derive_seed",
     "seed_degradations",
     "seed_degradation_rows",
@@ -140,6 +144,10 @@ __all__ = [
     "HISTORY_KEYS",
     "IMAGE_KEYS",
     "stack_frames",
+    # normalisation
+    "NORMALIZED_KEYS",
+    "normalize_transform",
+    "obs_scale",
     "preset_names",
     "sensor_of_key",
 ]

@@ -56,6 +56,7 @@ __all__ = [
     "derive_seed",
     "seed_degradations",
     "seed_degradation_rows",
+    "check_severity",
 ]
 
 #: The observation keys the env produces, by sensor group.
@@ -68,7 +69,7 @@ SENSOR_KEYS: dict[str, tuple[str, ...]] = {
 
 _MASK64 = (1 << 64) - 1
 #: the CPU device (one object: the one-env hot path tests identity, not equality)
-_CPU = torch.device("cpu")
+CPU = torch.device("cpu")
 
 
 def _splitmix64(x: int) -> int:
@@ -88,8 +89,9 @@ def derive_seed(seed: int, *salt: int | str) -> int:
     return x & ((1 << 63) - 1)
 
 
-def _check_severity(severity: Any, cls_name: str) -> tuple[int, int]:
-    """``severity`` → (lo, hi), inclusive, 1 <= lo <= hi <= 5; a clear error otherwise."""
+def check_severity(severity: Any, cls_name: str) -> tuple[int, int]:
+    """``severity`` → (lo, hi), inclusive, 1 <= lo <= hi <= 5: an integer or a (lo, hi) pair of them (a list from a
+    config); TypeError / ValueError naming ``cls_name`` otherwise (the config check reports it as one line)."""
 
     def _one(v):
         if isinstance(v, bool) or not isinstance(v, (int,)) and not (
@@ -163,7 +165,7 @@ class Degradation(Transform):
         **params: Any,
     ):
         cls = type(self).__name__
-        self.severity_range = _check_severity(severity, cls)
+        self.severity_range = check_severity(severity, cls)
         in_keys = as_list(in_keys, keep_none=True, atoms=(str, tuple))  # a tuple is one nested key
         out_keys = as_list(out_keys, keep_none=True, atoms=(str, tuple))
         self._auto = in_keys is None and not self.default_in_keys
@@ -283,7 +285,7 @@ class Degradation(Transform):
         return rows
 
     def rand(self, shape, device) -> torch.Tensor:
-        if self._row_generators is None and device is _CPU:  # the hot path of one env
+        if self._row_generators is None and device is CPU:  # the hot path of one env
             return torch.rand(shape, generator=self._generator)
         rows = self._rows(shape, device)
         if rows is not None:
@@ -291,7 +293,7 @@ class Degradation(Transform):
         return torch.rand(shape, generator=self._gen(device), device=device)
 
     def randn(self, shape, device) -> torch.Tensor:
-        if self._row_generators is None and device is _CPU:
+        if self._row_generators is None and device is CPU:
             return torch.randn(shape, generator=self._generator)
         rows = self._rows(shape, device)
         if rows is not None:

@@ -23,7 +23,12 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-__all__ = ["AppError", "flags_to_overrides", "compose", "check_keys", "is_multirun", "run_multirun"]
+__all__ = ["CONF_DIR", "AppError", "flags_to_overrides", "compose", "check_keys", "is_multirun", "run_multirun"]
+
+#: The Hydra config tree: ``conf/`` at the top of the repository, reached through the package's
+#: ``torcsrl/conf`` link (a wheel holds a copy there), so ``python -m torcsrl.train`` finds it in a
+#: checkout, an editable install and a plain ``pip install`` alike.
+CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
 
 class AppError(ValueError):
@@ -89,8 +94,6 @@ def compose(config_name: str, overrides: Sequence[str]):
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
-    from torcsrl.config import CONF_DIR
-
     try:
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3", job_name=config_name):
             return _compose(config_name=config_name, overrides=list(overrides))
@@ -104,8 +107,6 @@ def check_keys(cfg: Any, config_name: str, types: Mapping[str, tuple[type, ...]]
     an unknown key (``+key=...``) and a value of the wrong type (``types``) are AppErrors naming the key
     and what is allowed. Nothing is listed twice: the known keys are the YAML's own."""
     from omegaconf import OmegaConf  # deferred: see compose
-
-    from torcsrl.config import CONF_DIR
 
     d = OmegaConf.to_container(cfg, resolve=True)
     d.pop("hydra", None)
@@ -134,8 +135,6 @@ def run_multirun(config_name: str, overrides: Sequence[str], job: Callable[[Any,
     # deferred: see compose
     import hydra
     from hydra.core.hydra_config import HydraConfig
-
-    from torcsrl.config import CONF_DIR
 
     @hydra.main(config_path=str(CONF_DIR), config_name=config_name, version_base="1.3")
     def _main(cfg) -> Any:

@@ -20,7 +20,8 @@ a stage states only what changes. An override may set
   action_mode, control rate, car, beams); a deeper key (``env.traffic.driver.pace``) changes one value inside;
 * ``degradation.severity`` and ``degradation.stack[.<entry>[.<field>]]``.
 
-Each stage's config is checked like the base config (:func:`torcsrl.config.validate`) before training starts.
+Each stage's config is checked like the base config (:func:`check`, gathered by :func:`torcsrl.training.problems`) before
+training starts.
 
 **Promotion** (``promote``): after every validation the stage's criterion reads one number from the validation's
 metrics (:data:`METRICS`), keeps it for the stage, and promotes when ``over`` (k) of them are in and
@@ -38,7 +39,7 @@ drives alone (rehearsal against forgetting an earlier task; the round's own fram
 where it drives alone on roads the stage's env did not hold (``env.procedural.generator: proc``: circuits with
 hairpins).
 
-**The loop's interface** (:mod:`torcsrl.train`): ``Curriculum.from_config(cfg)``; ``config(cfg)`` the stage's config
+**The loop's interface** (:mod:`torcsrl.training.offpolicy`, :mod:`torcsrl.training.imitation`): ``Curriculum.from_config(cfg)``; ``config(cfg)`` the stage's config
 (with no stages: ``cfg`` itself); ``observe(eval_metrics, frames, episodes)`` after each validation, returning the
 promotion event (or None) after which the loop rebuilds the training env, its collector and the validation envs;
 ``state_dict()`` / ``load_state_dict()`` in the checkpoint (stage, its validations, the promotion history), so an
@@ -49,15 +50,19 @@ from __future__ import annotations
 
 import copy
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-__all__ = ["Curriculum", "CurriculumError", "Criterion", "Stage", "Rehearsal", "METRICS", "RULES", "FIXED_ENV_KEYS", "problems"]
+from torcsrl.agents import IMITATION, ON_POLICY
+from torcsrl.pipeline import env_signature
 
-#: What a criterion may read from a validation (``torcsrl.train.validate_all``):
+__all__ = ["Curriculum", "CurriculumError", "Criterion", "Stage", "Rehearsal", "METRICS", "RULES", "FIXED_ENV_KEYS", "check",
+           "stageable_env_keys"]
+
+#: What a criterion may read from a validation (``torcsrl.training.common.validate_all``):
 METRICS = {
     "clean": "the share of the validation's tracks (eval.per_track; else its one env: 0 or 1) driven clean: laps >= "
              "eval.lap_limit (1 if null) and no collision with another car. Over k validations with rule mean: the clean-lap rate",
@@ -325,9 +330,7 @@ class Curriculum:
 # ---------------------------------------------------------------------------------------------------------------
 def stageable_env_keys(env_name: str) -> list[str]:
     """The env keys a stage may override (``make_env``'s keywords less :data:`FIXED_ENV_KEYS`)."""
-    from torcsrl.config import _env_signature
-
-    return sorted(set(_env_signature(env_name)) - set(FIXED_ENV_KEYS))
+    return sorted(set(env_signature(env_name)) - set(FIXED_ENV_KEYS))
 
 
 def _check_key(key: str, where: str, env_name: str) -> None:
@@ -350,19 +353,17 @@ def _check_key(key: str, where: str, env_name: str) -> None:
         raise CurriculumError(f"{where}: unknown key {key!r} (env={env_name} has no {k!r}); allowed: {allowed}")
 
 
-def problems(cfg: DictConfig | Mapping, base_problems: list[str]) -> list[str]:
+def check(cfg: DictConfig | Mapping, base_problems: list[str], config_problems: Callable[[DictConfig], list[str]]) -> list[str]:
     """The curriculum's problems as config-check lines: its structure (:meth:`Curriculum.from_config`), then every
-    stage's config checked like the base config (only what the stage adds to ``base_problems``), prefixed with the
-    stage's name. Refused with algorithms whose loop does not follow a curriculum (bc, on-policy); DAgger's rounds
-    follow the stages (:mod:`torcsrl.imitation`)."""
+    stage's config checked like the base config by ``config_problems`` (the whole check, :func:`torcsrl.training.problems`;
+    only what the stage adds to ``base_problems``), prefixed with the stage's name. Refused with algorithms whose loop
+    does not follow a curriculum (bc, on-policy); DAgger's rounds follow the stages (:mod:`torcsrl.training.imitation`)."""
     try:
         cur = Curriculum.from_config(cfg)
     except CurriculumError as err:
         return [str(err)]
     if not cur.active:
         return []
-    from torcsrl.agents import IMITATION, ON_POLICY
-
     algo = (cfg.get("algo") or {}).get("name")
     if cur.rehearse is not None and algo != "dagger":
         return [f"curriculum.rehearse: algo={algo} cannot rehearse an earlier stage (its collector drives one env); allowed: "
@@ -372,8 +373,6 @@ def problems(cfg: DictConfig | Mapping, base_problems: list[str]) -> list[str]:
                 "off-policy algo (ddpg, td3, d4pg, sac), or algo=dagger (its rounds follow the stages)"]
     if base_problems:
         return []  # the stages are checked once the base config is sound
-    from torcsrl.config import problems as config_problems
-
     if not isinstance(cfg, DictConfig):  # a plain mapping (config.problems of a dict): the stages merge into a DictConfig
         cfg = OmegaConf.create(dict(cfg))
 

@@ -1,7 +1,7 @@
 """The on-policy loop (``algo=ppo``): collect a batch of rollouts, then several epochs of minibatches.
 
-It reads in the order PPO runs, beside :func:`torcsrl.train.train` (which it shares env, validation, logging and
-checkpoint pieces with): env (``env.num_cars`` cars in one world), agent (tanh-Gaussian actor, value network), loss
+It reads in the order PPO runs, beside the off-policy loop (:mod:`torcsrl.training.offpolicy`; the pieces they share are
+:mod:`torcsrl.training.common`'s): env (``env.num_cars`` cars in one world), agent (tanh-Gaussian actor, value network), loss
 (TorchRL's ``ClipPPOLoss`` with ``GAE``, computed on tensors: :mod:`torcsrl.objectives.ppo`), collector (batches
 of ``rollout_steps`` steps of every car, ``[cars, rollout_steps]``: :class:`~torcsrl.utils.collector.StepCollector` in
 this process, or with ``collector.num_workers`` W >= 1 :class:`WorkerRollouts`, W processes of ``env.num_cars / W``
@@ -39,74 +39,80 @@ from torchrl.envs.utils import ExplorationType
 
 from torcsrl import agents
 from torcsrl.agents.exploration import DeviceActorModule
-from torcsrl.train import (
+from torcsrl.pipeline import actor_obs_keys, expected_meta, make_eval_envs, make_train_env, pipeline_record
+from torcsrl.policies import load_policy
+from torcsrl.training.common import (
     Counters,
+    TrainState,
     TrainWindow,
-    _check_same_env,
-    _set_sim_state,
-    _sim_state,
-    expected_meta,
-    make_eval_envs,
+    advance,
+    check_same_env,
+    close_loop,
+    collector_state,
+    finish_resume,
     make_networks,
-    make_train_env,
-    pipeline_record,
     plain,
+    restore_collector,
+    restore_eval_envs,
     resume_command,
+    sim_state,
     validate_all,
+    wall_budget_s,
 )
-from torcsrl.utils.checkpoint import CheckpointError, checkpoint_path, latest_checkpoint, prune, resume_from, save_checkpoint
+from torcsrl.utils.checkpoint import checkpoint_path, latest_checkpoint, prune, resume_from, save_checkpoint
 from torcsrl.utils.collector import StepCollector
-from torcsrl.utils.logging import Progress, log_metrics, make_loggers, truncate_csv_after
-from torcsrl.utils.seeding import rng_state, seed_everything, set_rng_state
+from torcsrl.utils.logging import Progress, log_metrics, make_loggers
+from torcsrl.utils.seeding import rng_state, seed_everything
 from torcsrl.utils.threads import configure_threads, process_cpu_s
+
+__all__ = ["train", "WorkerRollouts", "make_rollout_collector", "worker_config", "save", "resume"]
 
 
 def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
-    """Train ``algo=ppo`` on ``cfg.env`` in ``run_dir`` (held by :func:`torcsrl.train.train`); returns the final metrics."""
-    ckpt_dir = run_dir / "checkpoints"
+    """Train ``algo=ppo`` on ``cfg.env`` in ``run_dir`` (held by :func:`torcsrl.training.train`); returns the final metrics."""
     workers = int(cfg.collector.num_workers)
     threads = configure_threads(cfg.threads, workers)
     seed_everything(int(cfg.seed))
     agent = agents.get(cfg.algo.name)
-    obs_keys = list(cfg.obs_keys or cfg.env.sensors)
+    obs_keys = actor_obs_keys(cfg)
     total = int(cfg.total_frames)
     device = torch.device(str(cfg.device))
 
-    env = make_train_env(worker_config(cfg, workers))  # with workers: one worker's cars (specs and the pipeline record only)
+    env = make_train_env(worker_config(cfg, workers), policy_loader=load_policy)  # with workers: one worker's cars (specs and the pipeline record only)
     actor, critic, loss = make_networks(cfg, agent, env, obs_keys, device)
     policy = agent.make_exploration(cfg.algo, actor, env, obs_keys)
     optim = agent.make_optimizers(cfg.algo, loss)
     cars = max(1, env.batch_size.numel()) * max(1, workers)
     collector = make_rollout_collector(cfg, env, policy, workers, threads)
-    eval_envs = make_eval_envs(cfg)
+    eval_envs = make_eval_envs(cfg, load_policy)
     eval_policy = TensorDictModule(actor, in_keys=obs_keys, out_keys=["action"]) if device.type == "cpu" else \
         DeviceActorModule(actor, obs_keys, ["action"], device)  # the mean action (CPU envs, actor on device)
-    meta = expected_meta(cfg, env, obs_keys)
-    counters = Counters(next_eval=int(cfg.eval.every_episodes), next_ckpt=int(cfg.checkpoint.every_frames) or total,
-                        next_log=int(cfg.logger.every_frames))
-    state = dict(cfg=cfg, ckpt_dir=ckpt_dir, meta=meta, loss=loss, actor=actor, critic=critic, optim=optim, collector=collector,
-                 env=env, eval_envs=eval_envs, threads=threads)
+    state = TrainState(cfg=cfg, run_dir=run_dir, meta=expected_meta(cfg, env, obs_keys), loss=loss, optim=optim,
+                       collector=collector, env=env, eval_envs=eval_envs, threads=threads, counters=Counters.start(cfg),
+                       actor=actor, critic=critic, policy=policy)
     if cfg.checkpoint.resume:
-        counters = _resume(counters=None, run_dir=run_dir, **state)
+        state.counters = resume(state)
         collector.update_policy_weights_()  # worker processes: they act with the restored weights and statistics
+    counters = state.counters
     loggers = make_loggers(cfg.logger["backends"], run_dir, cfg.logger.exp_name, cfg.logger.wandb_project, cfg.logger.wandb_mode)
     progress = Progress(total, enabled=bool(cfg.progress))
     print(f"[torcsrl] training ppo on env={cfg.env.name} ({cars} cars) for {total} steps; outputs in {run_dir}", file=sys.stderr)
 
     hot = plain(cfg.algo)
     epochs, minibatch = int(cfg.algo.epochs), int(cfg.algo.batch_size)
+    log_every, eval_every, ckpt_every = int(cfg.logger.every_frames), int(cfg.eval.every_episodes), int(cfg.checkpoint.every_frames) or total
     encoders = [m.encoder for m in (actor, critic) if m.encoder.norm is not None]
     last: dict[str, Any] = {}
     eval_metrics: dict[str, float] = {}
     window = TrainWindow(counters)
     t_start = window.t_start
-    max_wall_s = 60.0 * float(cfg.max_minutes) if cfg.get("max_minutes") else 0.0
+    max_wall_s = wall_budget_s(cfg)
     try:
         batches = iter(collector)
         while counters.frames < total:
             if max_wall_s and time.perf_counter() - t_start > max_wall_s:
                 print(f"[torcsrl] wall-clock budget of {cfg.max_minutes} min reached at {counters.frames} steps", file=sys.stderr)
-                _save(counters=counters, **state)
+                save(state)
                 break
             # collect a batch of rollouts: [cars, rollout_steps] (one car: [rollout_steps])
             data = next(batches)
@@ -115,19 +121,8 @@ def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             if device.type != "cpu":  # the rollout joins the networks (device=cuda): GAE, minibatches, statistics
                 data = data.to(device, non_blocking=True)
 
-            # advantages (GAE) and value targets with the networks that collected the batch
-            with torch.no_grad():
-                loss.value_estimator(data)
-            # epochs of shuffled minibatches: the rollout as tensors once, shuffled once an epoch, sliced (views)
-            batch = loss.batch(data)
-            n = len(batch)
-            for _ in range(epochs):
-                shuffled = batch[torch.randperm(n)]
-                for start in range(0, n, minibatch):
-                    last = agent.update(hot, loss, optim, None, shuffled[start:start + minibatch], counters.updates)
-                    counters.updates += 1
-            # the observation statistics take in the batch (for the next rollout and update); the worker processes'
-            # policies get the new weights and statistics before they collect again
+            # update: epochs of shuffled minibatches of the rollout, then the observation statistics and the workers' policies
+            last = update(agent, hot, loss, optim, data, epochs, minibatch, counters) or last
             for enc in encoders:
                 enc.update_norm(*[data.get(k) for k in obs_keys])
             collector.update_policy_weights_()
@@ -135,36 +130,24 @@ def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             # log
             if counters.frames >= counters.next_log:
                 window.log(loggers, progress, counters, last, **({"time/worker_cpu_s": collector.cpu_s()} if workers else {}))
-                while counters.next_log <= counters.frames:
-                    counters.next_log += int(cfg.logger.every_frames)
+                counters.next_log = advance(counters.next_log, counters.frames, log_every)
 
             # periodic deterministic validation (the policy's mean action)
             if counters.episodes >= counters.next_eval:
                 eval_metrics = validate_all(eval_envs, eval_policy, int(cfg.eval.episodes), int(cfg.eval.max_steps))
                 log_metrics(loggers, eval_metrics, counters.frames)
                 progress.eval_text = f"reward {eval_metrics['eval/reward']:.2f}, laps {eval_metrics['eval/laps']:.1f}"
-                while counters.next_eval <= counters.episodes:
-                    counters.next_eval += int(cfg.eval.every_episodes)
+                counters.next_eval = advance(counters.next_eval, counters.episodes, eval_every)
 
             # checkpoint
             if counters.frames >= counters.next_ckpt or counters.frames >= total:
-                every = int(cfg.checkpoint.every_frames) or total
-                while counters.next_ckpt <= counters.frames:
-                    counters.next_ckpt += every
-                _save(counters=counters, **state)
+                counters.next_ckpt = advance(counters.next_ckpt, counters.frames, ckpt_every)
+                save(state)
         progress.update(counters.frames, window.steps_per_s(counters), force=True)
     finally:
-        progress.close()
-        collector.shutdown()
-        for e in (env, *eval_envs.values()):
-            if not e.is_closed:
-                e.close()
-        for lg in loggers if "loggers" in locals() else []:
-            exp = getattr(lg, "experiment", None)
-            for f in getattr(exp, "files", {}).values():
-                f.close()
+        close_loop((env, *eval_envs.values()), loggers, collector, progress)
     wall = time.perf_counter() - t_start
-    newest = latest_checkpoint(ckpt_dir)
+    newest = latest_checkpoint(state.ckpt_dir)
     result = {"frames": counters.frames, "updates": counters.updates, "episodes": counters.episodes, "wall_s": wall,
               "run_dir": str(run_dir), "checkpoint": str(newest) if newest else None,
               **{k: float(v) for k, v in last.items()}, **eval_metrics}
@@ -173,10 +156,27 @@ def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     return result
 
 
+def update(agent, hot, loss, optim: dict, data: TensorDictBase, epochs: int, minibatch: int, counters: Counters) -> dict:
+    """PPO's update on one rollout: GAE advantages and value targets with the networks that collected it, then ``epochs``
+    passes of shuffled minibatches of ``minibatch`` rows (the rollout as tensors once, shuffled once an epoch, sliced:
+    views). Returns the last minibatch's metrics (empty when the rollout held no minibatch)."""
+    last: dict = {}
+    with torch.no_grad():
+        loss.value_estimator(data)
+    batch = loss.batch(data)
+    n = len(batch)
+    for _ in range(epochs):
+        shuffled = batch[torch.randperm(n)]
+        for start in range(0, n, minibatch):
+            last = agent.update(hot, loss, optim, None, shuffled[start:start + minibatch], counters.updates)
+            counters.updates += 1
+    return last
+
+
 def worker_config(cfg: DictConfig, workers: int) -> DictConfig:
     """``cfg`` with ``env.num_cars`` the cars of ONE of ``workers`` worker processes (``cfg`` itself without workers):
     ``env.num_cars`` stays the total, split evenly (a ValueError in one line when it does not divide;
-    :func:`torcsrl.config.validate` refuses it before that)."""
+    :func:`torcsrl.training.validate` refuses it before that)."""
     if workers < 1:
         return cfg
     cars = int(cfg.env.get("num_cars") or 1)
@@ -187,10 +187,10 @@ def worker_config(cfg: DictConfig, workers: int) -> DictConfig:
 
 
 def _worker_env(cfg: DictConfig, worker: int) -> EnvBase:
-    """Worker ``worker``'s env, built in its process: :func:`~torcsrl.train.make_train_env` (seed ``seed + 1000 (worker + 1)``),
+    """Worker ``worker``'s env, built in its process: :func:`~torcsrl.pipeline.make_train_env` (seed ``seed + 1000 (worker + 1)``),
     after seeding the process's torch generator (the policy's action draws) with the same seed."""
     torch.manual_seed(int(cfg.seed) + 1000 * (worker + 1))
-    return make_train_env(cfg, worker)
+    return make_train_env(cfg, worker, load_policy)
 
 
 class WorkerRollouts:
@@ -266,53 +266,46 @@ def make_rollout_collector(cfg: DictConfig, env: EnvBase, policy, workers: int, 
     return WorkerRollouts(MultiSyncCollector(fns, policy, frames_per_batch=per_env * workers, cat_results="stack", **common), workers)
 
 
-def _save(cfg, ckpt_dir, meta, counters, loss, actor, critic, optim, collector, env, eval_envs, threads) -> Path:
-    path = checkpoint_path(ckpt_dir, counters.frames)
+def save(state: TrainState) -> Path:
+    """A checkpoint of ``state`` at its frame count (the oldest beyond ``checkpoint.keep`` pruned): networks (observation
+    statistics included), optimisers, counters, RNGs, the in-process collector's in-flight step and its env's simulation,
+    the validation envs' simulations. Written only between batches: no rollout is ever half-kept."""
+    cfg = state.cfg
+    path = checkpoint_path(state.ckpt_dir, state.counters.frames)
     save_checkpoint(path, {
-        "meta": {**meta, "pipeline": pipeline_record(cfg, env)},
-        "counters": asdict(counters),
-        "loss": loss.state_dict(),
-        "actor": actor.state_dict(),  # what CheckpointPolicy and init.actor load (observation statistics included)
-        "critic": critic.state_dict(),
-        "optim": {k: o.state_dict() for k, o in optim.items()},
+        "meta": {**state.meta, "pipeline": pipeline_record(cfg, state.env)},
+        "counters": asdict(state.counters),
+        "loss": state.loss.state_dict(),
+        "actor": state.actor.state_dict(),  # what CheckpointPolicy and init.actor load (observation statistics included)
+        "critic": state.critic.state_dict(),
+        "optim": {k: o.state_dict() for k, o in state.optim.items()},
         "rng": rng_state(),
         # worker processes: their in-flight episodes are not kept (a resumed run restarts them), as for the off-policy loop
-        "collector": {} if isinstance(collector, WorkerRollouts) else {"state": collector.state_dict(), "env": _sim_state(env)},
-        "eval_envs": {name: _sim_state(e) for name, e in eval_envs.items()},
+        "collector": collector_state(state.collector, state.env, not isinstance(state.collector, WorkerRollouts)),
+        "eval_envs": {name: sim_state(e) for name, e in state.eval_envs.items()},
         "buffer_dir": None,
-        "threads": threads,
+        "threads": state.threads,
         "config": OmegaConf.to_yaml(cfg),
     })
-    prune(ckpt_dir, int(cfg.checkpoint.keep))
+    prune(state.ckpt_dir, int(cfg.checkpoint.keep))
     return path
 
 
-def _resume(cfg, ckpt_dir, meta, counters, loss, actor, critic, optim, collector, env, eval_envs, threads, run_dir) -> Counters:
-    path, ck = resume_from(cfg.checkpoint.resume, ckpt_dir, meta)
-    _check_same_env(cfg, ck, path)
-    loss.load_state_dict(ck["loss"])
-    actor.load_state_dict(ck["actor"])  # in place: the loss holds the same tensors
-    critic.load_state_dict(ck["critic"])
-    for k, o in optim.items():
+def resume(state: TrainState) -> Counters:
+    """Restore ``state`` from the checkpoint ``checkpoint.resume`` names; returns the checkpoint's counters."""
+    cfg = state.cfg
+    path, ck = resume_from(cfg.checkpoint.resume, state.ckpt_dir, state.meta)
+    check_same_env(cfg, ck, path)
+    state.loss.load_state_dict(ck["loss"])
+    state.actor.load_state_dict(ck["actor"])  # in place: the loss holds the same tensors
+    state.critic.load_state_dict(ck["critic"])
+    for k, o in state.optim.items():
         o.load_state_dict(ck["optim"][k])
-    if isinstance(collector, WorkerRollouts) or not ck["collector"]:
+    if isinstance(state.collector, WorkerRollouts) or not ck["collector"]:
         print("[torcsrl] resuming with (or from) worker processes: the in-flight episodes restart "
               "(exact resume needs collector.num_workers=0 before and after)", file=sys.stderr)
-    elif ck["collector"]["env"] is not None:
-        collector.load_state_dict(ck["collector"]["state"])
-        _set_sim_state(env, ck["collector"]["env"])
     else:
-        collector.load_state_dict(ck["collector"]["state"], carrier=False)
-        print("[torcsrl] this env has no get_sim_state: the in-flight episode restarts (exact resume needs it)", file=sys.stderr)
-    if set(ck["eval_envs"]) != set(eval_envs):
-        raise CheckpointError(f"checkpoint {path} validated on other envs than this config (eval.per_track / the track list changed)")
-    for name, e in eval_envs.items():
-        _set_sim_state(e, ck["eval_envs"][name])
-    if ck["threads"] != torch.get_num_threads():
-        print(f"[torcsrl] using the checkpoint's {ck['threads']} threads (float results depend on it)", file=sys.stderr)
-        torch.set_num_threads(int(ck["threads"]))
-    counters = Counters(**ck["counters"])
-    truncate_csv_after(run_dir, counters.frames)
-    set_rng_state(ck["rng"])
-    print(f"[torcsrl] resumed from {path} at {counters.frames} steps", file=sys.stderr)
-    return counters
+        restore_collector(state.collector, state.env, ck["collector"])
+    restore_eval_envs(state.eval_envs, ck["eval_envs"], path,
+                      f"checkpoint {path} validated on other envs than this config (eval.per_track / the track list changed)")
+    return finish_resume(ck, path, state.run_dir)
