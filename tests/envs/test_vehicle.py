@@ -483,9 +483,9 @@ def test_parked_cars_leave_the_physics_and_come_back_as_if_reset_in_place(worlds
 
 
 def test_numba_backend_without_numba_fails_in_one_line(world, monkeypatch):
-    from torcsrl.envs import vehicle
+    from torcsrl.envs.vehicle import fleet
 
-    monkeypatch.setattr(vehicle, "_JIT", None)  # as on a machine without numba
+    monkeypatch.setattr(fleet, "_JIT", None)  # as on a machine without numba
     with pytest.raises(ValueError, match="backend numba needs the numba package"):
         world.fleet(2, backend="numba")
     assert world.fleet(2).backend == "python" and world.fleet(6).backend == "numpy"  # auto falls back

@@ -1,364 +1,38 @@
-"""Raycast car physics in pybullet: N cars in one client, vectorised over cars with numpy.
+"""The fleet: N raycast cars in pybullet (see :mod:`torcsrl.envs.vehicle` for the model).
 
-Model (one car)
----------------
-* **Chassis**: one rigid body with a box collision shape (``length x width x height``), mass and
-  principal inertia from the parameters, centre of mass (COM) ``cg_height`` above the ground at
-  static ride height. pybullet integrates it (gravity, contacts with the ground when the car
-  bottoms out or rolls over). The box only touches the ground when something went wrong: in
-  normal driving the car stands on its four suspension rays.
-* **Suspension**: per wheel a ray from a chassis-fixed hardpoint along the chassis' -z axis, of
-  length ``rest_length + wheel_radius``. The hit fraction gives the spring compression; the
-  normal load is ``k * compression + c * compression_rate`` (>= 0, bump stop beyond ``travel``,
-  capped at ``max_wheel_load``), applied along the ground normal (world up: the ground is the
-  flat plane of :func:`make_ground`). All 4N rays of a fleet are one ``rayTestBatch`` call per
-  physics substep; they only hit bodies in collision group :data:`GROUND_GROUP`.
-* **Tyres**: combined-slip magic formula, as in TORCS' simuv2: with slip ratio
-  ``kappa = (omega * r - vx) / V`` and lateral slip ``tan(alpha) = -vy / V`` (``vx, vy`` the
-  contact-point velocity in the wheel's frame on the ground plane, ``V = max(|vx|, low_speed)``),
-  the normalised slip
-  ``s = |(kappa / peak_slip_ratio, tan(alpha) / peak_slip_angle)|`` gives the force magnitude
-  ``mu * Fz * sin(C * atan(B * s))`` (peak ``mu * Fz`` at ``s = 1``: a friction circle), directed
-  along the slip vector, in the ground plane. ``mu`` is the surface's friction
-  (``surfaces.MU``) under that wheel, times ``tyre_mu_scale``. (Applying the forces in the
-  ground plane rather than the rolled/pitched body plane matters: a 3 deg roll otherwise costs
-  ~10 % of the cornering grip.)
-* **Wheel spin**: each wheel has its own angular speed ``wheel_omega``, driven by engine torque,
-  slowed by brake and rolling-resistance torque (``crr * Fz * r``, ``crr`` from the surface) and
-  by the tyre's longitudinal force. The update is semi-implicit in the tyre's secant slip
-  stiffness (unconditionally stable at any substep); brake and rolling-resistance torques can
-  lock a wheel but never spin it backwards. ABS (on by default) keeps braked wheels at or above
-  ``-peak_slip_ratio``; optional traction control keeps driven wheels at or below it.
-* **Powertrain**: engine torque curve x throttle, automatic gearbox (6 forward gears, shifting on
-  rpm thresholds once per control step; no reverse), slipping clutch below ``clutch_rpm``,
-  engine braking with the throttle shut, rev limiter, open differential (equal torque to the
-  driven wheels).
-* **Brakes**: total brake torque split front/rear by ``brake_front_share``.
-* **Aero**: drag ``0.5 rho CdA |v| v`` opposing the body velocity; downforce
-  ``0.5 rho ClA vx^2`` split between the axles (so it loads the tyres through the suspension).
-* **Steering**: the road-wheel angle follows ``steer * max_steer`` at most ``max_steer_rate``
-  per second (Ackermann geometry on the two front wheels).
-
-All wheel forces of a car are summed into one force and one torque at the COM and applied in the
-WORLD frame (one ``applyExternalForce`` + one ``applyExternalTorque`` per car per substep). The
-tyre and suspension forces act at chassis-fixed contact points (below the wheel hardpoints, at
-ground level for the static ride height): the lever-arm error from suspension travel is a few
-cm against the 0.45 m COM height.
-
-Conventions
------------
-* Wheel order: front-left, front-right, rear-left, rear-right (index 0..3).
-* Body frame: x forward, y left, z up; ``yaw`` is the heading of body x in the world xy plane.
-* Controls: ``steer`` in [-1, 1] (+1 = full LEFT lock), ``throttle`` and ``brake`` in [0, 1].
-  Non-finite inputs never reach the physics: NaN becomes 0 (straight, no throttle, no brake),
-  +-inf become the nearest bound, then everything is clipped to its range.
-* Time: one :meth:`CarFleet.step` is one control step of ``1 / control_hz`` s (default 50 Hz),
-  made of ``substeps`` physics steps (default 4, i.e. 200 Hz; at least 200 Hz is required).
-
-Performance: per physics substep the fleet makes 2N state reads, one ray batch, 2N force calls
-and one ``stepSimulation`` per world; state is read once per substep and cached. Three backends integrate
-the same equations (a test checks they agree to rounding): ``"numpy"`` runs a fixed number of
-vectorised operations on ``[N, 4]`` arrays per substep, independent of N (~80 calls of ~1 us);
-``"python"`` runs them car by car in floats and beats numpy for a few cars; ``"numba"`` is the numpy
-backend with that arithmetic in two compiled kernels (:mod:`torcsrl.envs._vehicle_jit`) and is the
-fastest from two cars on (this CPU, 20 substeps a step: 0.40 / 0.64 / 1.74 / 3.17 ms a step for 1 / 4 / 16 / 32
-cars, against numpy's 1.47 / 1.85 / 3.04 / 4.73 and python's 0.41 / 1.49 / 5.72 / 11.5; for one car in the env at
-50 Hz x 4 substeps python is ~6 % faster: 3,417 against 3,213 steps/s). ``backend="auto"`` picks python for one car,
-numba for more where it is installed, else python for N <= 4 and numpy above. The public state arrays are new arrays after
-every step (never modified in place), so callers may keep them. A fleet owns the stepping of its
-pybullet clients: use one fleet per client.
+:class:`CarFleet` owns the cars' pybullet bodies and their dynamic state (wheel spin, steer angle, gear, rpm, wheel
+loads, surfaces), places, parks and restores them, exposes the state as arrays, and steps them through one of the
+integration backends it mixes in: :class:`~torcsrl.envs.vehicle.numpy_backend.NumpyBackend` (numpy, and numba with
+the compiled kernels of :mod:`~torcsrl.envs.vehicle.numba_backend`) or
+:class:`~torcsrl.envs.vehicle.python_backend.PythonBackend`.
 """
 
 from __future__ import annotations
 
-import bisect
-import dataclasses
 import math
-from collections import deque
+import warnings
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
-from importlib import resources
-from itertools import chain
 from typing import Any, NamedTuple
 
 import numpy as np
-from torcsrl.utils.bullet import pybullet as p
-import yaml
 
 from torcsrl.envs.surfaces import MU, ROLLING_RESISTANCE, SURFACE_NAMES, surface_id
+from torcsrl.envs.vehicle.ground import CAR_GROUP, GROUND_GROUP, GROUND_MODELS
+from torcsrl.envs.vehicle.numpy_backend import NumpyBackend
+from torcsrl.envs.vehicle.params import DRIVES, GRAVITY, RPM_PER_RAD_S, VehicleParams, sanitize_controls
+from torcsrl.envs.vehicle.python_backend import PythonBackend
+from torcsrl.utils.bullet import pybullet as p
 
-__all__ = [
-    "VehicleParams",
-    "CarFleet",
-    "make_ground",
-    "split_throttle_brake",
-    "sanitize_controls",
-    "available_vehicles",
-    "GROUND_GROUP",
-    "GROUND_MODELS",
-    "CAR_GROUP",
-    "WHEEL_NAMES",
-    "MIN_PHYSICS_HZ",
-]
+__all__ = ["CarFleet", "BACKENDS", "MIN_PHYSICS_HZ", "PYTHON_BACKEND_MAX_CARS"]
 
-#: Collision group of the ground (and anything the suspension rays should hit).
-GROUND_GROUP: int = 1
-#: Collision group of car chassis. Cars collide with the ground; with each other only if ``collide``.
-CAR_GROUP: int = 2
-#: Wheel order used by every ``[N, 4]`` array.
-WHEEL_NAMES: tuple[str, ...] = ("front_left", "front_right", "rear_left", "rear_right")
 #: Lowest physics rate the fleet accepts [Hz].
 MIN_PHYSICS_HZ: float = 200.0
 #: The integration backends (:class:`CarFleet`'s ``backend``).
 BACKENDS: tuple[str, ...] = ("auto", "numpy", "numba", "python")
 #: Without numba, fleets up to this many cars use the per-car Python backend by default (faster there than numpy).
 PYTHON_BACKEND_MAX_CARS: int = 4
-_G = 9.81  # [m/s^2] gravity set on the client by the fleet
-_RPM_PER_RAD_S = 60.0 / (2.0 * math.pi)
-_DRIVES: dict[str, tuple[float, float, float, float]] = {
-    "rear": (0.0, 0.0, 0.5, 0.5),
-    "front": (0.5, 0.5, 0.0, 0.0),
-    "all": (0.25, 0.25, 0.25, 0.25),
-}
-
-
-# --------------------------------------------------------------------------------------------
-# Parameters
-# --------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class VehicleParams:
-    """Vehicle parameters (SI units; engine speeds in rpm). Documented per key in ``vehicles/*.yaml``."""
-
-    # chassis
-    mass: float  # [kg]
-    inertia: tuple[float, float, float]  # [kg m^2] roll, pitch, yaw
-    length: float  # [m]
-    width: float  # [m]
-    height: float  # [m]
-    ground_clearance: float  # [m]
-    front_overhang: float  # [m]
-    cg_height: float  # [m]
-    cg_to_front_axle: float  # [m]
-    # geometry
-    wheelbase: float  # [m]
-    track_front: float  # [m]
-    track_rear: float  # [m]
-    wheel_radius: float  # [m]
-    wheel_inertia: float  # [kg m^2]
-    # suspension
-    rest_length: float  # [m]
-    travel: float  # [m]
-    stiffness_front: float  # [N/m]
-    stiffness_rear: float  # [N/m]
-    damping_front: float  # [N s/m]
-    damping_rear: float  # [N s/m]
-    bump_stop_stiffness: float  # [N/m]
-    max_wheel_load: float  # [N]
-    # tyre
-    tyre_mu_scale: float  # [-]
-    peak_slip_ratio: float  # [-]
-    peak_slip_angle: float  # [rad]
-    shape_c: float  # [-]
-    low_speed: float  # [m/s]
-    # engine
-    torque_curve_rpm: tuple[float, ...]  # [rpm]
-    torque_curve_nm: tuple[float, ...]  # [N m]
-    idle_rpm: float  # [rpm]
-    clutch_rpm: float  # [rpm]
-    redline_rpm: float  # [rpm]
-    engine_brake_nm: float  # [N m]
-    drivetrain_efficiency: float  # [-]
-    drive: str  # rear | front | all
-    # gearbox
-    gear_ratios: tuple[float, ...]  # [-]
-    final_drive: float  # [-]
-    shift_up_rpm: float  # [rpm]
-    shift_down_rpm: float  # [rpm]
-    # brakes
-    brake_torque: float  # [N m]
-    brake_front_share: float  # [-]
-    abs: bool
-    traction_control: bool
-    # steering
-    max_steer: float  # [rad]
-    max_steer_rate: float  # [rad/s]
-    ackermann: float  # [-]
-    # aero
-    air_density: float  # [kg/m^3]
-    drag_area: float  # [m^2]
-    lift_area: float  # [m^2]
-    downforce_front_share: float  # [-]
-    name: str = field(default="custom", compare=False)
-
-    # ---- loading -----------------------------------------------------------------------------
-    @classmethod
-    def load(cls, name: str = "default", overrides: dict[str, Any] | None = None) -> VehicleParams:
-        """Parameters from the bundled ``vehicles/<name>.yaml``, with optional flat key overrides.
-
-        Raises:
-            ValueError: unknown vehicle name (the message lists the available ones), or an
-                unknown / missing / invalid parameter.
-        """
-        known = available_vehicles()
-        if name not in known:
-            raise ValueError(f"unknown vehicle {name!r}; available: {', '.join(known)}")
-        text = resources.files("torcsrl.envs").joinpath("vehicles", f"{name}.yaml").read_text()
-        raw = yaml.safe_load(text)
-        flat: dict[str, Any] = {}
-        for section, entries in raw.items():
-            if not isinstance(entries, dict):
-                raise ValueError(f"vehicle {name!r}: section {section!r} must be a mapping of parameters")
-            for key, value in entries.items():
-                if key in flat:
-                    raise ValueError(f"vehicle {name!r}: parameter {key!r} given twice")
-                flat[key] = value
-        flat.update(overrides or {})
-        return cls.from_dict(flat, name=name)
-
-    @classmethod
-    def from_dict(cls, values: dict[str, Any], name: str = "custom") -> VehicleParams:
-        """Parameters from a flat mapping (every field once); validated."""
-        names = [f.name for f in dataclasses.fields(cls) if f.name != "name"]
-        unknown = sorted(set(values) - set(names))
-        if unknown:
-            raise ValueError(f"unknown vehicle parameter(s) {unknown}; allowed: {', '.join(names)}")
-        missing = [n for n in names if n not in values]
-        if missing:
-            raise ValueError(f"missing vehicle parameter(s) {missing}")
-        kw: dict[str, Any] = {}
-        for f in dataclasses.fields(cls):
-            if f.name == "name":
-                continue
-            v = values[f.name]
-            if f.name in ("inertia", "torque_curve_rpm", "torque_curve_nm", "gear_ratios"):
-                kw[f.name] = tuple(float(x) for x in v)
-            elif f.name == "drive":
-                kw[f.name] = str(v)
-            elif f.name in ("abs", "traction_control"):
-                kw[f.name] = bool(v)
-            else:
-                kw[f.name] = float(v)
-        out = cls(**kw, name=name)
-        out.validate()
-        return out
-
-    def replace(self, **changes: Any) -> VehicleParams:
-        """A validated copy with some fields changed."""
-        out = dataclasses.replace(self, **changes)
-        out.validate()
-        return out
-
-    def validate(self) -> None:
-        """Raise ``ValueError`` naming the first inconsistent parameter."""
-        if self.drive not in _DRIVES:
-            raise ValueError(f"drive must be one of {', '.join(_DRIVES)}, got {self.drive!r}")
-        positive = ("mass", "length", "width", "height", "cg_height", "wheelbase", "track_front", "track_rear",
-                    "wheel_radius", "wheel_inertia", "rest_length", "travel", "stiffness_front", "stiffness_rear",
-                    "max_wheel_load", "tyre_mu_scale", "peak_slip_ratio", "peak_slip_angle", "low_speed",
-                    "redline_rpm", "final_drive", "max_steer", "max_steer_rate")
-        for k in positive:
-            v = getattr(self, k)
-            if not (math.isfinite(v) and v > 0):
-                raise ValueError(f"vehicle parameter {k} must be finite and > 0, got {v}")
-        if len(self.inertia) != 3 or min(self.inertia) <= 0:
-            raise ValueError(f"inertia must be three positive moments [kg m^2], got {self.inertia}")
-        if not 0.0 < self.cg_to_front_axle < self.wheelbase:
-            raise ValueError(f"cg_to_front_axle must lie in (0, wheelbase={self.wheelbase}), got {self.cg_to_front_axle}")
-        if not 1.0 < self.shape_c < 2.0:
-            raise ValueError(f"shape_c must lie in (1, 2) so the force peaks, got {self.shape_c}")
-        for k in ("brake_front_share", "downforce_front_share", "drivetrain_efficiency", "ackermann"):
-            v = getattr(self, k)
-            if not 0.0 <= v <= 1.0:
-                raise ValueError(f"vehicle parameter {k} must lie in [0, 1], got {v}")
-        if len(self.torque_curve_rpm) != len(self.torque_curve_nm) or len(self.torque_curve_rpm) < 2:
-            raise ValueError("torque_curve_rpm and torque_curve_nm must have the same length (>= 2)")
-        if np.any(np.diff(self.torque_curve_rpm) <= 0):
-            raise ValueError("torque_curve_rpm must be strictly increasing")
-        if not self.gear_ratios or min(self.gear_ratios) <= 0:
-            raise ValueError(f"gear_ratios must be positive, got {self.gear_ratios}")
-        if not self.idle_rpm <= self.clutch_rpm < self.shift_down_rpm < self.shift_up_rpm <= self.redline_rpm:
-            raise ValueError("need idle_rpm <= clutch_rpm < shift_down_rpm < shift_up_rpm <= redline_rpm")
-        ratios = self.gear_ratios
-        for a, b in zip(ratios[:-1], ratios[1:]):
-            if self.shift_up_rpm * b / a <= self.shift_down_rpm:
-                raise ValueError(f"gears {a} -> {b}: an upshift at shift_up_rpm would land below shift_down_rpm")
-        if self.ground_clearance + self.height <= self.cg_height * 0.5:
-            raise ValueError("the collision box must reach above half the centre-of-mass height")
-
-    # ---- derived quantities -----------------------------------------------------------------
-    @property
-    def cg_to_rear_axle(self) -> float:
-        """[m] centre of mass ahead of the rear axle."""
-        return self.wheelbase - self.cg_to_front_axle
-
-    @property
-    def static_wheel_loads(self) -> np.ndarray:
-        """[N] static normal load of each wheel (FL, FR, RL, RR) on flat ground."""
-        front = self.mass * _G * self.cg_to_rear_axle / self.wheelbase / 2.0
-        rear = self.mass * _G * self.cg_to_front_axle / self.wheelbase / 2.0
-        return np.array([front, front, rear, rear])
-
-    @property
-    def max_power_w(self) -> float:
-        """[W] peak engine power at the crank (on the torque-curve samples)."""
-        rpm = np.asarray(self.torque_curve_rpm)
-        return float(np.max(np.asarray(self.torque_curve_nm) * rpm / _RPM_PER_RAD_S))
-
-    def max_wheel_power_w(self) -> float:
-        """[W] peak power at the wheels (crank power x drivetrain efficiency)."""
-        return self.max_power_w * self.drivetrain_efficiency
-
-    def top_gear_speed(self) -> float:
-        """[m/s] speed at the rev limiter in top gear."""
-        return self.redline_rpm / _RPM_PER_RAD_S / (self.gear_ratios[-1] * self.final_drive) * self.wheel_radius
-
-
-def available_vehicles() -> list[str]:
-    """Names of the bundled vehicle parameter files."""
-    folder = resources.files("torcsrl.envs").joinpath("vehicles")
-    return sorted(f.name[:-5] for f in folder.iterdir() if f.name.endswith(".yaml"))
-
-
-# --------------------------------------------------------------------------------------------
-# Controls
-# --------------------------------------------------------------------------------------------
 _CTRL_LOW = np.array([[-1.0], [0.0], [0.0]])
 _CTRL_HIGH = np.array([[1.0], [1.0], [1.0]])
-
-
-def sanitize_controls(x: Any, n: int, low: float, high: float, what: str = "control") -> np.ndarray:
-    """``x`` as a float array ``[n]`` in ``[low, high]``: NaN -> 0 (then clipped), +-inf -> the bounds.
-
-    Scalars broadcast to all cars. Raises ``ValueError`` if the shape does not broadcast to ``[n]``.
-    """
-    a = np.asarray(x, dtype=np.float64)
-    if a.shape != (n,):
-        try:
-            a = np.broadcast_to(a, (n,))
-        except ValueError:
-            raise ValueError(f"{what} must be a scalar or have shape ({n},), got shape {a.shape}") from None
-    return np.minimum(np.maximum(np.where(a == a, a, 0.0), low), high)
-
-
-def split_throttle_brake(throttle_brake: Any) -> tuple[np.ndarray, np.ndarray]:
-    """Map the combined pedal in [-1, 1] (negative brakes) to ``(throttle, brake)`` in [0, 1].
-
-    NaN counts as 0 (coast); +inf as full throttle, -inf as full brake.
-    """
-    a = np.asarray(throttle_brake, dtype=np.float64)
-    a = np.minimum(np.maximum(np.where(a == a, a, 0.0), -1.0), 1.0)
-    return np.maximum(a, 0.0), np.maximum(-a, 0.0)
-
-
-# --------------------------------------------------------------------------------------------
-# World helpers
-# --------------------------------------------------------------------------------------------
-#: Ground models of :class:`CarFleet` (see its ``ground`` argument).
-GROUND_MODELS = ("plane", "raycast")
-_MISS = (-1, -1, 9.0)  # a suspension ray that meets no ground (read as far below)
-
-
-_flat = chain.from_iterable
 
 
 class _Live(NamedTuple):
@@ -372,16 +46,14 @@ class _Live(NamedTuple):
 
 
 def _jit():
-    """The compiled kernels of the numba backend (:mod:`torcsrl.envs._vehicle_jit`), or None without numba."""
+    """The compiled kernels of the numba backend (:mod:`~torcsrl.envs.vehicle.numba_backend`), or None without numba."""
     global _JIT
     if _JIT is False:
         try:
-            from torcsrl.envs import _vehicle_jit as mod
+            from torcsrl.envs.vehicle import numba_backend as mod  # deferred: numba is optional, ~1.7 s to import
         except ImportError:  # no numba
             mod = None
         except (RuntimeError, OSError) as err:  # numba present but unusable here (e.g. no writable cache location)
-            import warnings
-
             warnings.warn(f"the numba vehicle backend is unavailable ({type(err).__name__}: {err}); using numpy / python", stacklevel=2)
             mod = None
         _JIT = mod
@@ -399,50 +71,6 @@ def _auto_backend(n_cars: int, several_worlds: bool) -> str:
     return "python" if n_cars <= PYTHON_BACKEND_MAX_CARS and not several_worlds else "numpy"
 
 
-def _consume(calls) -> None:
-    """Run an iterator of calls for their effects (``map`` over a C function: no Python frame per call)."""
-    deque(calls, maxlen=0)
-
-
-def _plane_hits(z_from: np.ndarray, z_to: np.ndarray) -> np.ndarray:
-    """Hit fractions of rays from height ``z_from`` to ``z_to`` [m] with the plane z = 0 (either
-    face, as bullet's ray test); 9.0 (far below: no spring force) where a ray does not reach it."""
-    dz = z_from - z_to
-    hit = (z_from * z_to <= 0.0) & (dz != 0.0)
-    return np.where(hit, z_from / np.where(hit, dz, 1.0), 9.0)
-
-
-def make_ground(client_id: int, lateral_friction: float = 0.8) -> int:
-    """A static infinite plane at z = 0 in collision group :data:`GROUND_GROUP`; returns its body id.
-
-    ``lateral_friction`` [-] only matters for chassis-ground contact (tyre grip comes from the
-    surface ids given to the fleet).
-    """
-    shape = p.createCollisionShape(p.GEOM_PLANE, physicsClientId=client_id)
-    body = p.createMultiBody(0.0, shape, basePosition=[0.0, 0.0, 0.0], physicsClientId=client_id)
-    p.setCollisionFilterGroupMask(body, -1, GROUND_GROUP, 0xFFFF, physicsClientId=client_id)
-    p.changeDynamics(body, -1, lateralFriction=lateral_friction, physicsClientId=client_id)
-    return body
-
-
-def _quat_to_matrix_table() -> tuple[np.ndarray, np.ndarray]:
-    """``R.flat = (q q^T).flat @ M + c`` for a unit quaternion q = (x, y, z, w) (pybullet order)."""
-    x, y, z, w = range(4)
-    terms = {  # R[i, j] = c_ij + sum(coef * q_a * q_b)
-        (0, 0): [(-2, y, y), (-2, z, z)], (0, 1): [(2, x, y), (-2, z, w)], (0, 2): [(2, x, z), (2, y, w)],
-        (1, 0): [(2, x, y), (2, z, w)], (1, 1): [(-2, x, x), (-2, z, z)], (1, 2): [(2, y, z), (-2, x, w)],
-        (2, 0): [(2, x, z), (-2, y, w)], (2, 1): [(2, y, z), (2, x, w)], (2, 2): [(-2, x, x), (-2, y, y)],
-    }
-    m = np.zeros((16, 9))
-    for (i, j), items in terms.items():
-        for coef, a, b in items:
-            m[4 * a + b, 3 * i + j] += coef
-    return m, np.eye(3).reshape(9)
-
-
-_QM, _QC = _quat_to_matrix_table()
-
-
 def _skew(r: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
 
@@ -450,8 +78,8 @@ def _skew(r: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 # The fleet
 # --------------------------------------------------------------------------------------------
-class CarFleet:
-    """N raycast cars in one pybullet client, or dealt over several (see the module docstring for the model).
+class CarFleet(NumpyBackend, PythonBackend):
+    """N raycast cars in one pybullet client, or dealt over several (see :mod:`torcsrl.envs.vehicle` for the model).
 
     Args:
         client_id: pybullet physics client. The fleet sets gravity and the fixed time step on it
@@ -514,9 +142,9 @@ class CarFleet:
         #: "raycast": pybullet rayTestBatch against every body in GROUND_GROUP (custom terrain).
         self.ground = ground
         #: "numpy" vectorises each substep over all wheels of all cars; "numba" is the numpy backend with its
-        #: per-substep arithmetic compiled (numba kernels: :mod:`torcsrl.envs._vehicle_jit`); "python" runs the
-        #: same equations car by car in floats ("auto": python for one car; numba for more where numba is installed,
-        #: else python for N <= 4 and numpy above).
+        #: per-substep arithmetic compiled (numba kernels: :mod:`~torcsrl.envs.vehicle.numba_backend`); "python"
+        #: runs the same equations car by car in floats ("auto": python for one car; numba for more where numba is
+        #: installed, else python for N <= 4 and numpy above).
         clients = [int(c) for c in client_id] if isinstance(client_id, Sequence) else [int(client_id)]
         if not 1 <= len(clients) <= n_cars:
             raise ValueError(f"a fleet of {n_cars} cars needs 1 to {n_cars} clients, got {len(clients)}")
@@ -537,7 +165,7 @@ class CarFleet:
         self.dt_control = 1.0 / self.control_hz  # [s]
         self.dt = self.dt_control / self.substeps  # [s] physics step
         for cid in clients:
-            p.setGravity(0.0, 0.0, -_G, physicsClientId=cid)
+            p.setGravity(0.0, 0.0, -GRAVITY, physicsClientId=cid)
             p.setPhysicsEngineParameter(fixedTimeStep=self.dt, numSubSteps=0, physicsClientId=cid)
         per = -(-self.n // len(clients))
         # per-car argument columns of the batched pybullet calls (map over C functions): world, base link, frame
@@ -596,7 +224,7 @@ class CarFleet:
         self._inv_kp = 1.0 / prm.peak_slip_ratio
         self._inv_ap = 1.0 / prm.peak_slip_angle
         self._wheel_a = self.dt / prm.wheel_inertia  # [rad/s per N m]
-        self._drive_split = np.array(_DRIVES[prm.drive])
+        self._drive_split = np.array(DRIVES[prm.drive])
         self._driven = self._drive_split > 0
         share = prm.brake_front_share
         self._brake_split = prm.brake_torque * np.array([share / 2, share / 2, (1 - share) / 2, (1 - share) / 2])
@@ -747,7 +375,7 @@ class CarFleet:
         self._fz = self._fz.copy()
         self._fz[idx] = prm.static_wheel_loads
         # the lowest gear that is not above the upshift speed
-        wheel_rpm = (speed / prm.wheel_radius * _RPM_PER_RAD_S)[:, None] * self._ratios[None, :]  # [k, gears]
+        wheel_rpm = (speed / prm.wheel_radius * RPM_PER_RAD_S)[:, None] * self._ratios[None, :]  # [k, gears]
         gear = 1 + np.minimum(np.sum(wheel_rpm > prm.shift_up_rpm, axis=1), len(self._ratios) - 1)
         self._gear = self._gear.copy()
         self._gear[idx] = gear
@@ -800,36 +428,6 @@ class CarFleet:
         self._live = _Live(live, [self.bodies[i] for i in pick], [self._cids[i] for i in pick], [-1] * len(pick),
                            [p.WORLD_FRAME] * len(pick))
 
-    # ---- state ------------------------------------------------------------------------------
-    def _read_state(self) -> None:
-        """numpy backend: read every car's pose and velocity once and derive the cached frames."""
-        cid, n = self.client, self.n
-        live = self._live
-        bodies, cids = (self.bodies, self._cids) if live is None else (live.bodies, live.cids)
-        # one row per car: position (3), quaternion xyzw (4), linear (3) and angular (3) velocity; read car by car
-        # (pose, then velocity) and flattened in C (map, chain, fromiter: no Python frame per car)
-        parts = zip(map(p.getBasePositionAndOrientation, bodies, cids), map(p.getBaseVelocity, bodies, cids))
-        raw = np.fromiter(_flat(_flat(_flat(parts))), dtype=np.float64, count=13 * len(bodies)).reshape(-1, 13)
-        if live is not None:  # parked cars keep their last rows
-            raw, rows = self._raw.copy(), raw
-            raw[live.idx] = rows
-        self._raw = raw
-        if self._kernels is not None:  # the same frames, compiled (and the plane's ray hits with them)
-            self._rot, self._twist_b, self._ray_pts, self._ground_xy, self._plane_frac = \
-                self._kernels.read_frames(raw, self._ray_pts_local, self.ground == "plane")
-            return
-        quat = raw[:, 3:7]
-        rot = ((quat[:, :, None] * quat[:, None, :]).reshape(n, 16) @ _QM + _QC).reshape(n, 3, 3)  # body -> world
-        self._rot = rot
-        # body-frame twist: the rows (v, w) times R are (R^T v, R^T w)
-        self._twist_b = np.matmul(raw[:, 7:13].reshape(n, 2, 3), rot).reshape(n, 6)
-        # suspension ray start and end points in the world frame [N, 8, 3]
-        self._ray_pts = np.matmul(self._ray_pts_local, rot.transpose(0, 2, 1)) + raw[:, None, 0:3]
-        # Ground frame (x: heading projected on the ground, y: its left, z: world up) in body
-        # coordinates: x_g + i y_g = exp(-i yaw) (R[0] + i R[1]) and z_g = R[2] (rows of R).
-        rc = rot[:, 0, :] + 1j * rot[:, 1, :]
-        heading = rc[:, 0].conj()
-        self._ground_xy = (heading / np.maximum(np.abs(heading), 1e-12))[:, None] * rc  # [N, 3] complex
 
     @property
     def pos(self) -> np.ndarray:
@@ -957,325 +555,3 @@ class CarFleet:
             self._step_python(controls)
         else:
             self._step_numpy(controls)
-
-    # ---- numpy backend: every substep vectorised over all wheels of all cars ------------------
-    def _step_numpy(self, controls: np.ndarray) -> None:
-        prm, n = self.params, self.n
-        steer, throttle, brake = controls
-        # Steering: rate-limited road-wheel angle; Ackermann split over the front wheels.
-        max_d = prm.max_steer_rate * self.dt_control
-        delta = self._delta + np.minimum(np.maximum(steer * prm.max_steer - self._delta, -max_d), max_d)
-        self._delta = delta
-        tan_d = np.tan(delta)[:, None]
-        front = np.arctan(prm.wheelbase * tan_d / (prm.wheelbase - self._ack_half_tracks * tan_d))
-        if prm.ackermann != 1.0:
-            front = prm.ackermann * front + (1.0 - prm.ackermann) * delta[:, None]
-        rot = np.ones((n, 4), dtype=complex)  # exp(i * wheel angle): wheel frame -> ground frame
-        rot[:, 0:2] = np.exp(1j * front)
-
-        # Powertrain: automatic gearbox, engine speed and torque, drive and brake torques.
-        drive_speed = self._omega @ self._drive_split  # [rad/s] mean driven-wheel speed
-        gear = self._gear
-        wheel_rpm = drive_speed * self._ratios[gear - 1] * _RPM_PER_RAD_S
-        shift = (wheel_rpm > prm.shift_up_rpm) & (gear < len(self._ratios))
-        shift = shift.astype(np.int64) - ((wheel_rpm < prm.shift_down_rpm) & (gear > 1))
-        if shift.any():
-            gear = gear + shift
-            wheel_rpm = drive_speed * self._ratios[gear - 1] * _RPM_PER_RAD_S
-        self._gear = gear
-        ratio = self._ratios[gear - 1]
-        rpm = np.maximum(wheel_rpm, prm.idle_rpm + (prm.clutch_rpm - prm.idle_rpm) * throttle)  # clutch slips
-        self._rpm = rpm
-        torque = np.interp(rpm, self._curve_rpm, self._curve_nm) * throttle * (rpm < prm.redline_rpm) \
-            - (wheel_rpm > prm.clutch_rpm) * (1.0 - throttle) * (prm.engine_brake_nm / prm.redline_rpm) * rpm
-        drive_a = (torque * ratio * (prm.drivetrain_efficiency * self._wheel_a))[:, None] * self._drive_split
-        brake_a = (brake * self._wheel_a)[:, None] * self._brake_split  # [rad/s] per substep
-        abs_on = (brake > 0.0)[:, None] if (prm.abs and brake.any()) else None
-        tcs_on = (throttle > 0.0)[:, None] & self._driven if (prm.traction_control and throttle.any()) else None
-
-        # Aero (held over the control step): drag against the body velocity, downforce at the axles.
-        vb = self._twist_b[:, 0:3]
-        aero = np.zeros((n, 6))
-        aero[:, 0:3] = (-self._drag_k * np.sqrt(np.sum(vb * vb, axis=1)))[:, None] * vb
-        aero += (self._down_k * vb[:, 0] * vb[:, 0])[:, None] * self._down_wrench
-
-        if self._kernels is not None:
-            abs_k = np.zeros(n, dtype=bool) if abs_on is None else abs_on[:, 0]
-            tcs_k = np.zeros((n, 4), dtype=bool) if tcs_on is None else tcs_on
-            for _ in range(self.substeps):
-                self._substep_numba(rot, drive_a, brake_a, aero, abs_k, tcs_k)
-            return
-        for _ in range(self.substeps):
-            self._substep_numpy(rot, drive_a, brake_a, aero, abs_on, tcs_on)
-
-    def _substep_numpy(self, rot: np.ndarray, drive_a: np.ndarray, brake_a: np.ndarray, aero: np.ndarray,
-                       abs_on: np.ndarray | None, tcs_on: np.ndarray | None) -> None:
-        prm, n = self.params, self.n
-        r = prm.wheel_radius
-        # Suspension: one ray batch for every wheel of every car; a miss counts as far below.
-        if self.ground == "plane":
-            frac = _plane_hits(self._ray_pts[:, 0:4, 2], self._ray_pts[:, 4:8, 2])
-        else:
-            frac = self._ray_fracs()
-        vp = (self._twist_b @ self._jac_t).reshape(n, 4, 3)  # contact-point velocities (body frame)
-        fz = self._k_a - self._k_l * frac - self._damp * vp[:, :, 2] \
-            + np.maximum(self._bump_a - self._bump_l * frac, 0.0)
-        fz = np.minimum(np.maximum(fz, 0.0), prm.max_wheel_load)
-        # Tyres: slip in the wheel frame (ground plane), combined-slip magic formula (friction circle).
-        ground_xy = self._ground_xy
-        w = (vp @ ground_xy[:, :, None])[:, :, 0] * rot.conj()
-        vx, vy = w.real, w.imag
-        big_v = np.maximum(np.abs(vx), prm.low_speed)
-        inv_kp = self._inv_kp / big_v
-        omega = self._omega
-        sx = (omega * r - vx) * inv_kp
-        sy = vy * (-self._inv_ap / big_v)
-        s = np.hypot(sx, sy) + 1e-9
-        g = (self._mu * fz) * np.sin(prm.shape_c * np.arctan(self._mf_b * s)) / s  # force per unit slip [N]
-        # Wheel spin, semi-implicit in the tyre's secant stiffness k = g * inv_kp / r per (m/s):
-        # w' = (w + a (T_drive + r k vx)) / (1 + a r^2 k); brake and rolling-resistance torques
-        # then reduce |w'| but never reverse it.
-        k_r = g * inv_kp * (r * self._wheel_a)
-        denom = 1.0 + k_r * r
-        w_free = (omega + drive_a + k_r * vx) / denom
-        dw = (brake_a + self._crr_a * fz) / denom
-        w_new = np.maximum(w_free - dw, np.minimum(w_free + dw, 0.0))
-        if abs_on is not None:  # ABS: braked wheels stay at or above -peak slip
-            w_new = np.where(abs_on, np.maximum(w_new, (vx - prm.peak_slip_ratio * big_v) * (1.0 / r)), w_new)
-        if tcs_on is not None:  # traction control: driven wheels stay at or below +peak slip
-            w_new = np.where(tcs_on, np.minimum(w_new, (vx + prm.peak_slip_ratio * big_v) * (1.0 / r)), w_new)
-        self._omega = w_new
-        self._fz = fz
-        # Wheel forces: tyre force in the ground plane, normal load along world up; to the body
-        # frame, then summed with aero into one body wrench at the COM.
-        f_ground = ((g * sx + 1j * (g * sy)) * rot).conj()  # (fx - i fy) in the ground frame
-        forces = (f_ground[:, :, None] * ground_xy[:, None, :]).real + fz[:, :, None] * self._rot[:, None, 2, :]
-        wrench = forces.reshape(n, 12) @ self._jac + aero
-        world = np.matmul(wrench.reshape(n, 2, 3), self._rot.transpose(0, 2, 1))  # (R f, R tau)
-        self._apply_and_step(world)
-
-    def _substep_numba(self, rot: np.ndarray, drive_a: np.ndarray, brake_a: np.ndarray, aero: np.ndarray,
-                       abs_on: np.ndarray, tcs_on: np.ndarray) -> None:
-        """numba backend: :meth:`_substep_numpy`'s arithmetic in one compiled kernel; the same pybullet calls."""
-        prm = self.params
-        frac = self._plane_frac if self.ground == "plane" else self._ray_fracs()
-        self._omega, self._fz, world = self._kernels.substep(
-            frac, self._twist_b, self._rot, self._ground_xy, rot, self._omega, self._mu, self._crr_a, drive_a, brake_a,
-            abs_on, tcs_on, aero, self._contact_local, self._k_a, self._k_l, self._damp, float(self._bump_a),
-            float(self._bump_l), float(prm.max_wheel_load), float(prm.low_speed), self._inv_kp, self._inv_ap,
-            float(prm.wheel_radius), self._wheel_a, float(prm.shape_c), self._mf_b, float(prm.peak_slip_ratio))
-        self._apply_and_step(world)
-
-    def _ray_fracs(self) -> np.ndarray:
-        """Suspension ray hit fractions ``[N, 4]`` from pybullet's ray test (ground="raycast"); 9.0 for a miss."""
-        pts = self._ray_pts.tolist()
-        frm = [w for car in pts for w in car[0:4]]
-        to = [w for car in pts for w in car[4:8]]
-        hits = p.rayTestBatch(frm, to, numThreads=1, collisionFilterMask=GROUND_GROUP, physicsClientId=self.client)
-        return np.array([h[2] if h[0] >= 0 else 9.0 for h in hits]).reshape(self.n, 4)
-
-    def _apply_and_step(self, world: np.ndarray) -> None:
-        """numpy and numba backends: apply every live car's world-frame force and torque ``[N, 2, 3]`` at its COM (every
-        car's force, then every car's torque: each body accumulates its own, the same sums as car by car), step every
-        world, book contacts, read the new state."""
-        live, pos = self._live, self._raw[:, 0:3]
-        if live is None:
-            bodies, links, frames, cids = self.bodies, self._links, self._world_frames, self._cids
-        else:  # parked cars: no forces
-            bodies, links, frames, cids = live.bodies, live.links, live.frames, live.cids
-            world, pos = world[live.idx], pos[live.idx]
-        _consume(map(p.applyExternalForce, bodies, links, world[:, 0].tolist(), pos.tolist(), frames, cids))
-        _consume(map(p.applyExternalTorque, bodies, links, world[:, 1].tolist(), frames, cids))
-        for c in self.clients:
-            p.stepSimulation(physicsClientId=c)
-        if self.contact_impulse is not None:
-            self._collect_contacts()
-        self._read_state()
-
-    # ---- python backend: the same equations, car by car, in floats -----------------------------
-    def _read_frames(self) -> None:
-        """python backend: read every car's state once; keep per-car frames and ray ends as floats."""
-        cid, ray_len, hard = self.client, self._ray_len, self._hard_list
-        gp, gv, gm, hypot = p.getBasePositionAndOrientation, p.getBaseVelocity, p.getMatrixFromQuaternion, math.hypot
-        raws, frames, frm, to = [], [], [], []
-        for b in self.bodies:
-            pos, quat = gp(b, physicsClientId=cid)
-            vel, angvel = gv(b, physicsClientId=cid)
-            (vx, vy, vz), (wx, wy, wz) = vel, angvel
-            m = gm(quat)  # row-major body -> world
-            twist = (m[0] * vx + m[3] * vy + m[6] * vz, m[1] * vx + m[4] * vy + m[7] * vz,
-                     m[2] * vx + m[5] * vy + m[8] * vz, m[0] * wx + m[3] * wy + m[6] * wz,
-                     m[1] * wx + m[4] * wy + m[7] * wz, m[2] * wx + m[5] * wy + m[8] * wz)
-            # ground frame in body coordinates: x_g (heading on the ground), y_g (its left)
-            h = max(hypot(m[0], m[3]), 1e-12)
-            ch, sh = m[0] / h, m[3] / h
-            xg = (ch * m[0] + sh * m[3], ch * m[1] + sh * m[4], ch * m[2] + sh * m[5])
-            yg = (ch * m[3] - sh * m[0], ch * m[4] - sh * m[1], ch * m[5] - sh * m[2])
-            raws.append(pos + quat + vel + angvel)
-            frames.append((pos, m, twist, xg, yg))
-            px, py, pz = pos
-            ux, uy, uz = m[2] * ray_len, m[5] * ray_len, m[8] * ray_len
-            for hx, hy, hz in hard:
-                ax = px + m[0] * hx + m[1] * hy + m[2] * hz
-                ay = py + m[3] * hx + m[4] * hy + m[5] * hz
-                az = pz + m[6] * hx + m[7] * hy + m[8] * hz
-                frm.append((ax, ay, az))
-                to.append((ax - ux, ay - uy, az - uz))
-        self._frames, self._raws, self._frm, self._to = frames, raws, frm, to
-
-    def _publish_frames(self) -> None:
-        """python backend: the cached frames as the public numpy state arrays."""
-        n = self.n
-        self._raw = np.array(self._raws)
-        self._rot = np.array([f[1] for f in self._frames]).reshape(n, 3, 3)
-        self._twist_b = np.array([f[2] for f in self._frames])
-        self._ray_pts = np.concatenate([np.reshape(self._frm, (n, 4, 3)), np.reshape(self._to, (n, 4, 3))], axis=1)
-
-    def _step_python(self, controls: np.ndarray) -> None:
-        """One control step car by car in floats: the equations of :meth:`_step_numpy` and
-        :meth:`_substep_numpy`, one for one (tests check that both backends agree). For a few
-        cars this beats numpy, whose per-call overhead (~1 us) then dominates."""
-        prm, n, cid = self.params, self.n, self.client
-        r, low, c_mf, b_mf = prm.wheel_radius, prm.low_speed, prm.shape_c, self._mf_b
-        ikp, iap, ra, kp = self._inv_kp, self._inv_ap, r * self._wheel_a, prm.peak_slip_ratio
-        fz_max, wheel_a = prm.max_wheel_load, self._wheel_a
-        k_a, k_l, damp = self._k_a_list, self._k_l_list, self._damp_list
-        bump_a, bump_l = self._bump_a, self._bump_l
-        contact = self._contact_list
-        split, brake_split, driven = self._drive_split_list, self._brake_split_list, self._driven_list
-        mu_all, crr_all = self._mu.tolist(), self._crr_a.tolist()
-        omega_all, fz_all = self._omega.tolist(), self._fz.tolist()
-        steer_l, throttle_l, brake_l = controls.tolist()
-        delta_l, gear_l, rpm_l = self._delta.tolist(), self._gear.tolist(), self._rpm.tolist()
-        ratios, n_gears = self._ratios_list, len(self._ratios_list)
-        wb, ht, ack = prm.wheelbase, prm.track_front / 2.0, prm.ackermann
-        max_d = prm.max_steer_rate * self.dt_control
-        atan, sin, cos, tan, hypot, sqrt = math.atan, math.sin, math.cos, math.tan, math.hypot, math.sqrt
-
-        # Per control step, per car: steering, powertrain, aero (held over the substeps).
-        cars = []
-        for i in range(n):
-            steer, throttle, brake = steer_l[i], throttle_l[i], brake_l[i]
-            delta = delta_l[i] + min(max(steer * prm.max_steer - delta_l[i], -max_d), max_d)
-            delta_l[i] = delta
-            tan_d = tan(delta)
-            fl = atan(wb * tan_d / (wb - ht * tan_d))
-            fr = atan(wb * tan_d / (wb + ht * tan_d))
-            if ack != 1.0:
-                fl, fr = ack * fl + (1.0 - ack) * delta, ack * fr + (1.0 - ack) * delta
-            cw = (cos(fl), cos(fr), 1.0, 1.0)
-            sw = (sin(fl), sin(fr), 0.0, 0.0)
-            om = omega_all[i]
-            drive_speed = om[0] * split[0] + om[1] * split[1] + om[2] * split[2] + om[3] * split[3]
-            gear = gear_l[i]
-            wheel_rpm = drive_speed * ratios[gear - 1] * _RPM_PER_RAD_S
-            shift = int(wheel_rpm > prm.shift_up_rpm and gear < n_gears) - int(wheel_rpm < prm.shift_down_rpm and gear > 1)
-            if shift:
-                gear += shift
-                wheel_rpm = drive_speed * ratios[gear - 1] * _RPM_PER_RAD_S
-            gear_l[i] = gear
-            ratio = ratios[gear - 1]
-            rpm = max(wheel_rpm, prm.idle_rpm + (prm.clutch_rpm - prm.idle_rpm) * throttle)
-            rpm_l[i] = rpm
-            torque = self._torque_at(rpm) * throttle * (rpm < prm.redline_rpm) \
-                - (wheel_rpm > prm.clutch_rpm) * (1.0 - throttle) * (prm.engine_brake_nm / prm.redline_rpm) * rpm
-            t_a = torque * ratio * (prm.drivetrain_efficiency * wheel_a)
-            drive = (t_a * split[0], t_a * split[1], t_a * split[2], t_a * split[3])
-            b_a = brake * wheel_a
-            brk = (b_a * brake_split[0], b_a * brake_split[1], b_a * brake_split[2], b_a * brake_split[3])
-            abs_i = prm.abs and brake > 0.0
-            tcs_i = (prm.traction_control and throttle > 0.0, driven)
-            bvx, bvy, bvz = self._frames[i][2][0:3]
-            dk = -self._drag_k * sqrt(bvx * bvx + bvy * bvy + bvz * bvz)
-            down = self._down_k * bvx * bvx
-            aero = (dk * bvx, dk * bvy, dk * bvz - down, 0.0, self._down_wrench[4] * down, 0.0)
-            cars.append((cw, sw, drive, brk, abs_i, tcs_i, aero))
-
-        apply_f, apply_t, world = p.applyExternalForce, p.applyExternalTorque, p.WORLD_FRAME
-        bodies = self.bodies
-        plane = self.ground == "plane"
-        for _ in range(self.substeps):
-            if plane:
-                hits = [(0, -1, fz_ / (fz_ - tz_)) if fz_ * tz_ <= 0.0 and fz_ != tz_ else _MISS
-                        for (_, _, fz_), (_, _, tz_) in zip(self._frm, self._to)]
-            else:
-                hits = p.rayTestBatch(self._frm, self._to, numThreads=1, collisionFilterMask=GROUND_GROUP,
-                                      physicsClientId=cid)
-            for i, b in enumerate(bodies):
-                pos, m, (bvx, bvy, bvz, bwx, bwy, bwz), (xx, xy, xz), (yx, yy, yz) = self._frames[i]
-                zx, zy, zz = m[6], m[7], m[8]
-                cw, sw, drive, brk, abs_i, (tcs_i, tcs_w), aero = cars[i]
-                fx_t, fy_t, fz_t, tx_t, ty_t, tz_t = aero
-                om, fzs, mu, crr = omega_all[i], fz_all[i], mu_all[i], crr_all[i]
-                for j in range(4):
-                    h = hits[4 * i + j]
-                    frac = h[2] if h[0] >= 0 else 9.0
-                    cx, cy, cz = contact[j]
-                    # contact-point velocity (body frame): v + w x r
-                    pvx = bvx + (bwy * cz - bwz * cy)
-                    pvy = bvy + (bwz * cx - bwx * cz)
-                    pvz = bvz + (bwx * cy - bwy * cx)
-                    fz = k_a[j] - k_l[j] * frac - damp[j] * pvz + max(bump_a - bump_l * frac, 0.0)
-                    fz = min(max(fz, 0.0), fz_max)
-                    gvx = pvx * xx + pvy * xy + pvz * xz  # ground frame
-                    gvy = pvx * yx + pvy * yy + pvz * yz
-                    c, s_ = cw[j], sw[j]
-                    vxw = c * gvx + s_ * gvy  # wheel frame
-                    vyw = c * gvy - s_ * gvx
-                    big_v = max(abs(vxw), low)
-                    inv_kp = ikp / big_v
-                    w0 = om[j]
-                    sx = (w0 * r - vxw) * inv_kp
-                    sy = vyw * (-iap / big_v)
-                    sn = hypot(sx, sy) + 1e-9
-                    g = (mu[j] * fz) * sin(c_mf * atan(b_mf * sn)) / sn
-                    k_r = g * inv_kp * ra
-                    denom = 1.0 + k_r * r
-                    w_free = (w0 + drive[j] + k_r * vxw) / denom
-                    dw = (brk[j] + crr[j] * fz) / denom
-                    w_new = max(w_free - dw, min(w_free + dw, 0.0))
-                    if abs_i:
-                        w_new = max(w_new, (vxw - kp * big_v) * (1.0 / r))
-                    if tcs_i and tcs_w[j]:
-                        w_new = min(w_new, (vxw + kp * big_v) * (1.0 / r))
-                    om[j] = w_new
-                    fzs[j] = fz
-                    fxw, fyw = g * sx, g * sy
-                    gfx = c * fxw - s_ * fyw  # ground frame
-                    gfy = s_ * fxw + c * fyw
-                    bfx = gfx * xx + gfy * yx + fz * zx  # body frame
-                    bfy = gfx * xy + gfy * yy + fz * zy
-                    bfz = gfx * xz + gfy * yz + fz * zz
-                    fx_t += bfx
-                    fy_t += bfy
-                    fz_t += bfz
-                    tx_t += cy * bfz - cz * bfy  # r x F
-                    ty_t += cz * bfx - cx * bfz
-                    tz_t += cx * bfy - cy * bfx
-                force = (m[0] * fx_t + m[1] * fy_t + m[2] * fz_t, m[3] * fx_t + m[4] * fy_t + m[5] * fz_t,
-                         m[6] * fx_t + m[7] * fy_t + m[8] * fz_t)
-                torque = (m[0] * tx_t + m[1] * ty_t + m[2] * tz_t, m[3] * tx_t + m[4] * ty_t + m[5] * tz_t,
-                          m[6] * tx_t + m[7] * ty_t + m[8] * tz_t)
-                apply_f(b, -1, force, pos, world, physicsClientId=cid)
-                apply_t(b, -1, torque, world, physicsClientId=cid)
-            p.stepSimulation(physicsClientId=cid)
-            if self.contact_impulse is not None:
-                self._collect_contacts()
-            self._read_frames()
-        self._omega = np.array(omega_all)
-        self._fz = np.array(fz_all)
-        self._delta = np.array(delta_l)
-        self._gear = np.array(gear_l, dtype=np.int64)
-        self._rpm = np.array(rpm_l)
-        self._publish_frames()
-
-    def _torque_at(self, rpm: float) -> float:
-        """Full-throttle engine torque [N m] at ``rpm`` (linear interpolation, clamped like np.interp)."""
-        xs, ys = self._curve_rpm_list, self._curve_nm_list
-        if rpm <= xs[0]:
-            return ys[0]
-        if rpm >= xs[-1]:
-            return ys[-1]
-        k = bisect.bisect_right(xs, rpm)
-        t = (rpm - xs[k - 1]) / (xs[k] - xs[k - 1])
-        return ys[k - 1] + t * (ys[k] - ys[k - 1])

@@ -1,10 +1,12 @@
 """Compiled per-substep arithmetic of :class:`torcsrl.envs.vehicle.CarFleet` (``backend="numba"``).
 
-The same equations as the numpy backend's ``_read_state`` and ``_substep_numpy`` (and, one for one, the python
-backend's floats), as two numba kernels over all wheels of all cars: one reads the cached frames from the raw
-pybullet state, one computes suspension, tyres, wheel spin and the world-frame wrench of every car. The pybullet
-calls (state reads, forces, ``stepSimulation``) stay where they are. Numpy runs ~80 small array operations per
-substep whatever N (~1 us each); these kernels run them in one pass, so a 16-car fleet steps ~1.6x faster.
+The same equations as the numpy backend's ``_read_state`` and ``_substep_numpy``
+(:mod:`~torcsrl.envs.vehicle.numpy_backend`; and, one for one, the python backend's floats,
+:mod:`~torcsrl.envs.vehicle.python_backend`), as two numba kernels over all wheels of all cars: one reads the cached
+frames from the raw pybullet state, one computes suspension, tyres, wheel spin and the world-frame wrench of every
+car. The pybullet calls (state reads, forces, ``stepSimulation``) stay in the numpy backend. Numpy runs ~80 small
+array operations per substep whatever N (~1 us each); these kernels run them in one pass, so a 16-car fleet steps
+~1.6x faster.
 
 Importing this module compiles nothing: the kernels compile on first call (cached on disk by numba).
 """
