@@ -1,13 +1,12 @@
-"""The race simulation core and its gymnasium face.
+"""The race simulation core: :class:`RaceCore`, the one simulation every face shares.
 
-:class:`RaceCore` is the one simulation every face shares: N cars in one pybullet client (cars
-never collide; each has its own track, progress and episode), TORCS-style sensors, named reward
-terms, lap bookkeeping and the episode rules. :class:`RaceEnv` is its gymnasium face (one car);
-:class:`torcsrl.envs.batched.TorchRaceEnv` its TorchRL face (one car or a batch).
+N cars in one pybullet client (cars never collide; each has its own track, progress and episode), TORCS-style
+sensors, named reward terms, lap bookkeeping and the episode rules.
 
 One control step (the template method, :meth:`RaceCore.step`):
-act (sanitise) → physics substeps → locate (Frenet projection, surfaces under the wheels) →
-bookkeeping (progress, laps) → observe (sensors) → reward terms → terminated → truncated → info.
+act (sanitise) → physics substeps → locate (Frenet projection, surfaces under the wheels;
+:mod:`~torcsrl.envs.race.locate`) → bookkeeping (progress, laps) → observe (sensors) → reward terms → terminated →
+truncated → info.
 """
 
 from __future__ import annotations
@@ -18,74 +17,28 @@ import tempfile
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-import gymnasium as gym
 import numpy as np
-from torcsrl.utils.bullet import pybullet as p
-from gymnasium import spaces
-from gymnasium.utils import EzPickle
 
 from torcsrl.envs import surfaces as _surf
 from torcsrl.envs import tracks as _tracks
-from torcsrl.envs.tracks.procedural import ProceduralSpec
+from torcsrl.envs.race.locate import CarLocator
+from torcsrl.envs.race.views import LearnerView, TrackSlots
+from torcsrl.envs.race.rules import ACTION_MODES, START_MODES, episode_setting_problems, wrap_deltas
 from torcsrl.envs.rewards import REWARD_TERMS, Reward
-from torcsrl.envs.sensors import (MS_TO_KMH, RANGEFINDER_ANGLES_DEG, RANGE_M, STATE_BOUNDS, STATE_SLOTS, TELEMETRY_SLOTS,
-                                  Rangefinder, check_sensors)
-from torcsrl.envs.traffic import (OPPONENT_RANGE_M, OPPONENT_RGBA, OPPONENT_SECTORS, RACE_INFO_KEYS, Traffic, TrafficSpec,
+from torcsrl.envs.sensors import (MS_TO_KMH, RANGEFINDER_ANGLES_DEG, RANGE_M, STATE_SLOTS, TELEMETRY_SLOTS, Rangefinder,
+                                  check_sensors)
+from torcsrl.envs.tracks.procedural import ProceduralSpec
+from torcsrl.envs.traffic import (OPPONENT_RANGE_M, OPPONENT_RGBA, OPPONENT_SECTORS, Traffic, TrafficSpec,
                                   opponent_sectors)
 from torcsrl.envs.vehicle import BACKENDS, CarFleet, VehicleParams, make_ground
 from torcsrl.envs.world import TRACK_SPACING_M
+from torcsrl.utils.bullet import pybullet as p
 from torcsrl.utils.seq import as_list
 
-ACTION_MODES = ("combined", "separate")
-START_MODES = ("grid", "random")
-#: Up to this many cars, cars are followed along their tracks chord by chord (the exact walk of
-#: :meth:`Track.track_point`); beyond, located by the windowed vectorised projection.
-SCALAR_LOCATE_MAX_CARS = 8
-#: Up to this many cars the walk runs car by car in plain Python; beyond, vectorised over the cars
-#: (:meth:`Track.track_points`, the same numbers).
-PYTHON_WALK_MAX_CARS = 4
-#: Keys of the per-car bookkeeping reported in ``info`` (TORCS names; SI units).
-#: ``surfaceMu`` [-] is the mean friction coefficient under the car's four wheels (surface x tyre): privileged
-#: knowledge for teachers (a camera sees the surface, no TORCS sensor does); no observation carries it.
-INFO_KEYS: tuple[str, ...] = ("distFromStart", "distRaced", "lap", "curLapTime", "lastLapTime", "bestLapTime", "surfaceMu")
-TERMINATION_REASONS: tuple[str, ...] = ("", "off_track", "backwards", "no_progress", "flipped")
+__all__ = ["RaceCore"]
 
 
-def wrap_deltas(s_new: np.ndarray, s_old: np.ndarray, lengths: np.ndarray) -> np.ndarray:
-    """:meth:`Track.wrap_delta` of each car on its own track (lap lengths ``lengths``), vectorised: the same
-    operations elementwise, so each entry has the bits ``car_tracks[i].wrap_delta(s_new[i], s_old[i])`` has."""
-    half = 0.5 * lengths
-    return np.mod(s_new - s_old + half, lengths) - half
-
-
-def episode_setting_problems(**settings: Any) -> list[tuple[str, str]]:
-    """``(key, message)`` for each of ``spawn_jitter``, ``offtrack_grace_s``, ``no_progress_s``,
-    ``backwards_m`` given in ``settings`` that :class:`RaceCore` cannot use (also run by torcsrl.config)."""
-    out: list[tuple[str, str]] = []
-
-    def number(v: Any) -> float | None:
-        try:
-            x = float(v)
-        except (TypeError, ValueError):
-            return None
-        return x if math.isfinite(x) else None
-
-    if "spawn_jitter" in settings and settings["spawn_jitter"] is not None:
-        sj = settings["spawn_jitter"]
-        vals = [number(v) for v in sj] if isinstance(sj, (list, tuple)) else []
-        if len(vals) != 2 or any(v is None or v < 0 for v in vals):
-            out.append(("spawn_jitter", f"must be two finite half-ranges [d_m, yaw_rad] >= 0, got {sj!r}; allowed: e.g. [1.0, 0.1]"))
-    for key, none_ok in (("offtrack_grace_s", False), ("no_progress_s", True), ("backwards_m", False)):
-        if key not in settings or (settings[key] is None and none_ok):
-            continue
-        v = number(settings[key])
-        if v is None or v < 0:
-            out.append((key, f"must be a finite number >= 0, got {settings[key]!r}; allowed: [0, inf)"
-                             + (" or None (never)" if none_ok else "")))
-    return out
-
-
-class RaceCore:
+class RaceCore(CarLocator):
     """N cars racing on their own tracks in one pybullet world.
 
     Args:
@@ -126,10 +79,6 @@ class RaceCore:
         seed: seed of the env's random generator (tracks, surfaces, spawn).
     """
 
-    #: Cars followed one by one in plain Python up to this many (an instance may raise it: the batched
-    #: evaluation does, so that each car is located exactly as a one-car env locates it).
-    scalar_locate_max_cars: int = SCALAR_LOCATE_MAX_CARS
-
     def __init__(
         self,
         track: str | Sequence[str] = "road_flow",
@@ -159,6 +108,20 @@ class RaceCore:
         vehicle_backend: str = "auto",
         seed: int | None = None,
     ) -> None:
+        self._check_settings(sensors, num_cars, action_mode, start, vehicle_backend, max_steps, lap_limit)
+        self._count_cars(num_cars, traffic)
+        self._list_tracks(track, procedural, surface, seed)
+        self._set_episode_rules(spawn_jitter, offtrack_grace_s, no_progress_s, backwards_m, reward, reward_scale,
+                                max_steps, lap_limit, start, action_mode)
+        params = self._build_worlds(cars_per_world, vehicle, vehicle_overrides, control_hz, substeps, vehicle_backend)
+        self._build_traffic(params)
+        self._build_sensors(rangefinder_angles_deg, rangefinder_range_m, camera)
+        self._init_books(seed)
+
+    # ------------------------------------------------------------------ construction (in this order)
+    def _check_settings(self, sensors: Sequence[str], num_cars: int, action_mode: str, start: str, vehicle_backend: str,
+                        max_steps: int, lap_limit: int | None) -> None:
+        """The sensor keys, and the arguments checked before anything is built."""
         self.sensors = check_sensors(sensors)
         if int(num_cars) != num_cars or num_cars < 1:
             raise ValueError(f"num_cars must be a positive integer, got {num_cars!r}")
@@ -172,11 +135,18 @@ class RaceCore:
             raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}")
         if lap_limit is not None and (int(lap_limit) != lap_limit or lap_limit < 1):
             raise ValueError(f"lap_limit must be a positive integer or None, got {lap_limit!r}")
+
+    def _count_cars(self, num_cars: int, traffic: Mapping[str, Any] | None) -> None:
+        """The learners, the race's opponents (if any) and the number of cars in the world."""
         #: the cars the agent drives (the env's batch); ``n`` counts every car of the world (opponents too)
         self.n_learners = int(num_cars)
         self.traffic_spec = TrafficSpec.from_config(traffic)
         k_opp = self.traffic_spec.opponents if self.traffic_spec is not None else 0
         self.n = self.n_learners * (1 + k_opp)
+
+    def _list_tracks(self, track: str | Sequence[str], procedural: Mapping[str, Any] | None,
+                     surface: str | Sequence[str] | None, seed: int | None) -> None:
+        """The track slots' names (named tracks, then a procedural pool) and the road surfaces to draw from."""
         self.track_names = _tracks.resolve(as_list(track))
         #: Named tracks first, then the procedural pool (slots n_named ...).
         self.n_named = len(self.track_names)
@@ -187,6 +157,11 @@ class RaceCore:
         for s in self.surfaces:
             if s is not None and s not in _surf.ROAD_SURFACES:
                 raise ValueError(f"unknown surface {s!r}; road surfaces: {', '.join(_surf.ROAD_SURFACES)}")
+
+    def _set_episode_rules(self, spawn_jitter: Sequence[float], offtrack_grace_s: float, no_progress_s: float | None,
+                           backwards_m: float, reward: str | Mapping[str, float], reward_scale: float, max_steps: int,
+                           lap_limit: int | None, start: str, action_mode: str) -> None:
+        """The reward, the episode's limits and termination rules, the start and the action layout."""
         for key, msg in episode_setting_problems(spawn_jitter=spawn_jitter, offtrack_grace_s=offtrack_grace_s,
                                                  no_progress_s=no_progress_s, backwards_m=backwards_m):
             raise ValueError(f"{key} {msg}")
@@ -201,6 +176,9 @@ class RaceCore:
         self.action_mode = action_mode
         self.action_dim = 2 if action_mode == "combined" else 3
 
+    def _build_worlds(self, cars_per_world: int | None, vehicle: str, vehicle_overrides: Mapping[str, Any] | None,
+                      control_hz: float, substeps: int, vehicle_backend: str) -> VehicleParams:
+        """The pybullet world(s), each with its ground, and the fleet of every car; returns the vehicle parameters."""
         worlds = 1
         if cars_per_world is not None:
             if isinstance(cars_per_world, bool) or int(cars_per_world) != cars_per_world or cars_per_world < 1:
@@ -217,6 +195,10 @@ class RaceCore:
         self.fleet = CarFleet([self.client, *self._more_clients] if worlds > 1 else self.client, self.n, params,
                               control_hz=control_hz, substeps=substeps, backend=vehicle_backend)
         self.dt = self.fleet.dt_control
+        return params
+
+    def _build_traffic(self, params: VehicleParams) -> None:
+        """The race's opponents (None: every car alone): their track copies' offsets, collisions and colour."""
         self.traffic: Traffic | None = None
         self._group_offset = np.zeros((self.n, 2))
         if self.traffic_spec is not None:
@@ -227,15 +209,18 @@ class RaceCore:
                 self.fleet.track_contacts(True)
             for b in self.fleet.bodies[self.n_learners:]:
                 p.changeVisualShape(b, -1, rgbaColor=list(OPPONENT_RGBA), physicsClientId=self.client)
+
+    def _build_sensors(self, rangefinder_angles_deg: Sequence[float], rangefinder_range_m: float,
+                       camera: Mapping[str, Any] | None) -> None:
+        """The observation keys of every car, the rangefinder, the track slots and their origins, the camera."""
         #: observation keys computed for every car (the learners' sensors and what frozen-policy opponents read)
         self._all_keys = tuple(k for k in self.sensors if k not in ("pixels", "depth"))
         if self.traffic is not None:
             self._all_keys += tuple(k for k in self.traffic.obs_keys if k not in self._all_keys)
         self._obs_all: dict[str, np.ndarray] = {}
-        self.start_back = np.zeros(self.n)  # how far behind its race's start point each car started [m] (laps count from there)
         self.rangefinder = Rangefinder(rangefinder_angles_deg, rangefinder_range_m) if "rangefinder" in self._all_keys else None
         #: one slot per distinct entry: the named tracks loaded now (a bad one fails here), a procedural pool's on first use
-        self._geometry = _TrackSlots(self.track_names, loaded=self.n_named)
+        self._geometry = TrackSlots(self.track_names, loaded=self.n_named)
         #: World origin [m] of each track slot: tracks lie 10 km apart, so that cameras never see
         #: another slot's track, and each car drives at its own track's origin.
         self.track_origins = np.array([[k * TRACK_SPACING_M, 0.0] for k in range(len(self._geometry))])
@@ -245,7 +230,10 @@ class RaceCore:
         if "pixels" in self.sensors or "depth" in self.sensors:
             self._make_camera()
 
+    def _init_books(self, seed: int | None) -> None:
+        """The env's generator and every car's episode books, observation and step results (zeros until a reset)."""
         n = self.n
+        self.start_back = np.zeros(n)  # how far behind its race's start point each car started [m] (laps count from there)
         self.rng = np.random.default_rng(seed)
         self.slot = np.zeros(n, dtype=np.int64)
         self.car_tracks = [self._variant(0, self.surfaces[0])] * n
@@ -291,9 +279,9 @@ class RaceCore:
         return self._variants[key]
 
     def _make_camera(self) -> None:
-        from torcsrl.envs import camera as _camera  # optional: pixels and depth
+        from torcsrl.envs import camera as _camera  # deferred: the camera (renderer, OpenGL) only for pixels and depth
 
-        self.camera = _camera.CarCameras(self.client, self if self.traffic is None else _LearnerView(self), **self._camera_cfg)
+        self.camera = _camera.CarCameras(self.client, self if self.traffic is None else LearnerView(self), **self._camera_cfg)
 
     def car_origins(self) -> np.ndarray:
         """World origin ``[n, 2]`` [m] of each car's track copy (its track slot's origin, plus its race group's offset)."""
@@ -329,12 +317,7 @@ class RaceCore:
             return self._reset_race(idx)
         k = len(idx)
         rng = self.rng
-        if self.procedural is not None:  # named tracks or the pool, then a track within
-            pick = rng.random(k) < self.procedural.share
-            slots = np.where(pick, self.n_named + rng.integers(self.procedural.pool, size=k), rng.integers(self.n_named, size=k))
-        else:
-            slots = rng.integers(len(self._geometry), size=k) if len(self._geometry) > 1 else np.zeros(k, dtype=np.int64)
-        surf = [self.surfaces[j] for j in (rng.integers(len(self.surfaces), size=k) if len(self.surfaces) > 1 else np.zeros(k, dtype=int))]
+        slots, surf = self._draw_tracks(k)
         xy = np.zeros((k, 2))
         yaw = np.zeros(k)
         for j, i in enumerate(idx):
@@ -382,6 +365,8 @@ class RaceCore:
         self._locate(idx_reset=idx)
 
     def _draw_tracks(self, k: int) -> tuple[np.ndarray, list]:
+        """Track slots ``[k]`` and surface overrides of ``k`` cars from the env's generator: named tracks or the
+        procedural pool, then a track within; then the surfaces."""
         rng = self.rng
         if self.procedural is not None:
             pick = rng.random(k) < self.procedural.share
@@ -595,118 +580,12 @@ class RaceCore:
                  steer_change)
         self.terms = np.array(terms).reshape(len(REWARD_TERMS), 1)
         w = self.reward._w
-        total = sum(w[k] * terms[k] for k in range(len(self.reward._w_core)))
+        total = sum(w[k] * terms[k] for k in range(len(self.reward.core_weights)))
         for row, wk in self.reward.extra:
             total = total + wk * terms[row]
         self.rewards = np.array([self.reward.scale * total])
         self.terminated = np.array([term])
         self.truncated = np.array([not term and (int(self.steps[0]) >= self.max_steps or fin)])
-
-    # ------------------------------------------------------------------ internals
-    def _locate(self, idx_reset: np.ndarray | None = None) -> None:
-        """Frenet position of every car and the surface under each wheel (exact projection).
-
-        Few cars: each point is followed chord by chord from the car's previous chord in plain
-        Python (a few µs). Many cars: one vectorised projection per track, windowed around the
-        previous arc length.
-        """
-        fleet = self.fleet
-        origin = self.car_origins()  # [N, 2]
-        pos = fleet.pos[:, :2] - origin  # in each car's track frame
-        wheels = fleet.wheel_xy - origin[:, None, :]  # [N, 4, 2]
-        if self.n <= self.scalar_locate_max_cars:
-            walk = self._locate_scalar if self.n <= PYTHON_WALK_MAX_CARS else self._locate_walk
-            ids = walk(pos, wheels, fleet.yaw)
-            if ids is not None:
-                fleet.set_wheel_surfaces(ids)
-                return
-        pts = np.concatenate([pos[:, None, :], wheels], axis=1)  # [N, 5, 2]
-        hint = self.s
-        ids = np.empty((self.n, 4), dtype=np.int64)
-        groups = [np.arange(self.n)] if self.n == 1 else [np.flatnonzero([t is u for t in self.car_tracks])
-                                                            for u in {id(t): t for t in self.car_tracks}.values()]
-        for g in groups:
-            t = self.car_tracks[g[0]]
-            s, d = t.project(pts[g], s_hint=np.repeat(hint[g, None], 5, axis=1), window_m=8.0)
-            wl, wr, heading, sid = t.lookup(s)
-            on = (d[:, 1:] <= wl[:, 1:]) & (d[:, 1:] >= -wr[:, 1:])
-            ids[g] = np.where(on, sid[:, 1:], _surf.GRASS_ID)
-            self.s[g] = s[:, 0]
-            self.d[g] = d[:, 0]
-            self.track_pos[g] = np.where(d[:, 0] >= 0.0, d[:, 0] / wl[:, 0], d[:, 0] / wr[:, 0])
-            self.angle[g] = (fleet.yaw[g] - heading[:, 0] + math.pi) % (2.0 * math.pi) - math.pi
-            self.chord[g] = t._locate(s[:, 0])[0]
-        fleet.set_wheel_surfaces(ids)
-
-    def _locate_scalar(self, pos: np.ndarray, wheels: np.ndarray, yaw: np.ndarray) -> np.ndarray | None:
-        ids = np.empty((self.n, 4), dtype=np.int64)
-        grass = _surf.GRASS_ID
-        wl_ = wheels.tolist()
-        for i in range(self.n):
-            t = self.car_tracks[i]
-            r = t.track_point(float(pos[i, 0]), float(pos[i, 1]), int(self.chord[i]))
-            if r is None:
-                return None
-            s, d, chord, u = r
-            wl, wr, heading, _ = t.frame_at(chord, u)
-            self.s[i], self.d[i], self.chord[i] = s, d, chord
-            self.track_pos[i] = d / wl if d >= 0.0 else d / wr
-            self.angle[i] = (float(yaw[i]) - heading + math.pi) % (2.0 * math.pi) - math.pi
-            for k, (x, y) in enumerate(wl_[i]):
-                rw = t.track_point(x, y, chord)
-                if rw is None:
-                    return None
-                w_l, w_r, _, sid = t.frame_at(rw[2], rw[3])
-                ids[i, k] = sid if -w_r <= rw[1] <= w_l else grass
-        return ids
-
-    def _locate_walk(self, pos: np.ndarray, wheels: np.ndarray, yaw: np.ndarray) -> np.ndarray | None:
-        """:meth:`_locate_scalar` vectorised over the cars (:meth:`Track.track_points`): the same numbers, bit for
-        bit, and the same side effects when a walk fails (the cars before the first failing one, and that car's own
-        point if it settled, are written; then ``None``)."""
-        n = self.n
-        s_new, d_new, tp_new, ang_new = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
-        ch_new = np.zeros(n, dtype=np.int64)
-        car_ok = np.zeros(n, dtype=bool)
-        all_ok = np.zeros(n, dtype=bool)
-        ids = np.empty((n, 4), dtype=np.int64)
-        tracks = self.car_tracks
-        first = tracks[0]
-        groups = [np.arange(n)] if all(t is first for t in tracks) else \
-            [np.flatnonzero([t is u for t in tracks]) for u in {id(t): t for t in tracks}.values()]
-        pi, two_pi = math.pi, 2.0 * math.pi
-        for g in groups:
-            t = tracks[g[0]]
-            tab = t._walk_table()
-            wl_, dwl = t.w_left, t._delta(t.w_left)
-            wr_, dwr = t.w_right, t._delta(t.w_right)
-            s, d, ch, u, ok = t.track_points(pos[g, 0], pos[g, 1], self.chord[g])
-            row = tab[ch]
-            nx = row[:, 4] + u * row[:, 6]
-            ny = row[:, 5] + u * row[:, 7]
-            heading = np.fromiter(map(math.atan2, (-nx).tolist(), ny.tolist()), dtype=np.float64, count=len(g))
-            wl = wl_[ch] + u * dwl[ch]
-            wr = wr_[ch] + u * dwr[ch]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                tp = np.where(d >= 0.0, d / wl, d / wr)
-            s_new[g], d_new[g], ch_new[g], tp_new[g] = s, d, ch, tp
-            ang_new[g] = (yaw[g] - heading + pi) % two_pi - pi
-            car_ok[g] = ok
-            # the wheels walk from their car's chord
-            rs, rd, rc, ru, rok = t.track_points(wheels[g, :, 0], wheels[g, :, 1], np.repeat(ch, 4))
-            w_l = wl_[rc] + ru * dwl[rc]
-            w_r = wr_[rc] + ru * dwr[rc]
-            ids[g] = np.where((-w_r <= rd) & (rd <= w_l), t.surface_ids[rc], _surf.GRASS_ID).reshape(-1, 4)
-            all_ok[g] = ok & rok.reshape(-1, 4).all(axis=1)
-        if all_ok.all():
-            self.s[:], self.d[:], self.chord[:], self.track_pos[:], self.angle[:] = s_new, d_new, ch_new, tp_new, ang_new
-            return ids
-        f = int(np.argmin(all_ok))  # the first car whose walk failed: the scalar loop wrote the cars before it
-        w = np.arange(n) < f
-        w[f] = car_ok[f]
-        for a, v in ((self.s, s_new), (self.d, d_new), (self.chord, ch_new), (self.track_pos, tp_new), (self.angle, ang_new)):
-            a[w] = v[w]
-        return None
 
     def _laps(self) -> None:
         """``lap``: full laps driven since the start (``distRaced // length``; from the grid, the
@@ -801,259 +680,3 @@ class RaceCore:
 _BOOK_FIELDS = ("slot", "s", "d", "chord", "s0", "dist_raced", "best_dist", "best_dist_time", "lap", "crossings", "time",
                 "lap_start_time", "lap_timed", "last_lap_time", "best_lap_time", "steps", "offtrack_time", "angle",
                 "track_pos", "finished", "reason", "terms", "rewards", "terminated", "truncated", "last_steer")
-
-
-class RaceEnv(gym.Env, EzPickle):
-    """Race a full-size car round a track, seen through TORCS-style sensors.
-
-    ## Description
-    A raycast car (pybullet; ~1,100 kg, 2.6 m wheelbase, tyre forces from slip scaled by the grip
-    of the surface under each wheel) drives on a bundled or generated track. The task is to drive
-    fast without leaving the track, as in the TORCS studies (Summers 2022, Andersson et al.).
-
-    ## Action Space
-    ``Box(-1, 1, (2,), float32)`` with ``action_mode="combined"`` (default):
-
-    | index | action         | range   | meaning                                                  |
-    |-------|----------------|---------|----------------------------------------------------------|
-    | 0     | steer          | [-1, 1] | road-wheel angle as a fraction of full lock; +1 = left    |
-    | 1     | throttle_brake | [-1, 1] | > 0: throttle fraction; < 0: brake fraction (pedal)       |
-
-    ``action_mode="separate"``: ``Box(-1, 1, (3,))`` = steer, throttle, brake, with pedals mapped
-    from [-1, 1] to [0, 1]. Finite out-of-range values are clipped; a NaN or infinite action, or
-    one of the wrong shape, raises ``ValueError`` and the physics is not touched. The gearbox is
-    automatic.
-
-    ## Observation Space
-    ``Dict`` with the keys chosen by ``sensors`` (default ``("rangefinder", "state")``):
-
-    - ``rangefinder``: ``Box(-1, 200, (19,), float32)`` [m] — distance to the track edge along beams at
-      −90, −75, −60, −45, −30, −20, −15, −10, −5, 0, 5, 10, 15, 20, 30, 45, 60, 75, 90° from the car's
-      heading (positive = left); all −1 while off the track.
-    - ``state``: ``Box((11,), float32)``, slots (:data:`torcsrl.envs.sensors.STATE_SLOTS`):
-      angle_rad [rad] (car vs track axis), trackPos [-] (0 centre, ±1 edges, > 0 left),
-      speedX/Y/Z_kmh [km/h] (car frame: forward, left, up), wheelSpinVel fl/fr/rl/rr [rad/s],
-      rpm [1/min], gear [-]. Bounds: angle ±π, rpm [0, 20000], gear [0, 10], the rest ±1000.
-    - ``telemetry``: ``Box((9,), float32)``, the on-board slots of ``state`` (speeds, wheel spin, rpm, gear;
-      :data:`torcsrl.envs.sensors.TELEMETRY_SLOTS`): no angle to the axis or trackPos, which need a map.
-    - ``pixels`` ``Box(0, 255, (3, H, W), uint8)`` and ``depth`` ``Box(0, far, (1, H, W), float32)`` [m]
-      from the car-mounted camera, when requested.
-
-    Normalised versions (divide by :func:`torcsrl.envs.sensors.obs_scale`) are in [−1, 1].
-
-    ## Rewards
-    ``reward_scale · Σ weight · term`` over the named terms of :mod:`torcsrl.envs.rewards`
-    (speed_cos, speed_sin, track_pos, progress, termination); the default preset is Summers 2022's
-    final reward v_x (cos θ − |sin θ|) [m/s] with −1 on termination. Each term is in ``info``.
-
-    ## Starting State
-    At rest on the start/finish line (``start="grid"``) or at a uniformly drawn arc length
-    (``start="random"``), optionally jittered laterally and in yaw (``spawn_jitter``). With several
-    tracks (or surfaces) one is drawn per episode from the env's seed.
-
-    ## Episode End
-    *Terminated*: off the track (|trackPos| > 1) for longer than ``offtrack_grace_s``; driving
-    ``backwards_m`` backwards from the furthest point reached; no new furthest point for
-    ``no_progress_s``; the car flipped. *Truncated*: ``max_steps`` control steps, or
-    ``lap_limit`` laps completed (``info["finished"]`` is then True). Never both.
-
-    ## Info
-    distFromStart [m], distRaced [m], lap (completed laps), curLapTime, lastLapTime, bestLapTime [s]
-    (0 until set, as in TORCS), ``reward_<term>`` for every reward term, ``termination``
-    (the reason, "" if none), ``finished``, ``track``, ``surface``.
-
-    ## Arguments
-    See :class:`RaceCore` (every keyword is passed through), plus ``render_mode`` (``"rgb_array"``:
-    a top-down 400×400 frame of the track and the car).
-
-    ## Version History
-    - v0: initial version.
-    """
-
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
-
-    def __init__(self, render_mode: str | None = None, **kwargs: Any) -> None:
-        EzPickle.__init__(self, render_mode=render_mode, **kwargs)
-        if kwargs.get("num_cars", 1) != 1:
-            raise ValueError("the gymnasium RaceEnv drives one car; use torcsrl.envs.make_env(num_cars=N) for a batch")
-        if render_mode not in (None, "rgb_array"):
-            raise ValueError(f"unknown render_mode {render_mode!r}; allowed: rgb_array")
-        self.render_mode = render_mode
-        self.core = RaceCore(**kwargs)
-        self.metadata = dict(self.metadata, render_fps=int(round(1.0 / self.core.dt)))
-        self.action_space = spaces.Box(-1.0, 1.0, (self.core.action_dim,), np.float32)
-        obs_spaces = {}
-        for key, shape in self.core.observation_shapes.items():
-            if key == "rangefinder":
-                obs_spaces[key] = spaces.Box(-1.0, self.core.rangefinder.range_m, shape, np.float32)
-            elif key in ("state", "telemetry"):
-                lo, hi = np.array([STATE_BOUNDS[s] for s in (STATE_SLOTS if key == "state" else TELEMETRY_SLOTS)], dtype=np.float32).T
-                obs_spaces[key] = spaces.Box(lo, hi, dtype=np.float32)
-            elif key == "opponents":
-                obs_spaces[key] = spaces.Box(0.0, OPPONENT_RANGE_M, shape, np.float32)
-            elif key == "pixels":
-                obs_spaces[key] = spaces.Box(0, 255, shape, np.uint8)
-            elif key == "depth":
-                obs_spaces[key] = spaces.Box(0.0, np.inf, shape, np.float32)
-        self.observation_space = spaces.Dict(obs_spaces)
-        self._seeded = False
-
-    def _obs(self) -> dict[str, np.ndarray]:
-        obs = {k: v[0] for k, v in self.core.obs.items()}
-        for k in ("state", "telemetry"):  # keep the observation inside its (very wide) physical bounds
-            if k in obs:
-                np.clip(obs[k], self.observation_space[k].low, self.observation_space[k].high, out=obs[k])
-        return obs
-
-    def _info(self) -> dict[str, Any]:
-        c = self.core
-        info = {k: (int(v[0]) if k in ("lap", "racePos", "overtakes", "collisions") else float(v[0])) for k, v in c.info().items()}
-        info["termination"] = TERMINATION_REASONS[int(c.reason[0])]
-        info["finished"] = bool(c.finished[0])
-        info["track"] = c.car_tracks[0].name
-        info["surface"] = c.car_tracks[0].default_surface
-        return info
-
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
-        super().reset(seed=seed)
-        if seed is not None or not self._seeded:
-            self.core.seed(seed if seed is not None else int(self.np_random.integers(2**31)))
-            self._seeded = True
-        self.core.reset()
-        return self._obs(), self._info()
-
-    def step(self, action):
-        a = np.asarray(action, dtype=np.float64)
-        if a.shape != self.action_space.shape:
-            names = "steer, throttle_brake" if self.core.action_dim == 2 else "steer, throttle, brake"
-            raise ValueError(f"action has shape {a.shape}; expected {self.action_space.shape} ({names})")
-        self.core.step(a[None])
-        c = self.core
-        return self._obs(), float(c.rewards[0]), bool(c.terminated[0]), bool(c.truncated[0]), self._info()
-
-    def render(self):
-        if self.render_mode != "rgb_array":
-            return None
-        c = self.core
-        return render_top_down(c.car_tracks[0], c.fleet.pos[0, :2] - c.car_origins()[0], float(c.fleet.yaw[0]))
-
-    def close(self) -> None:
-        if getattr(self, "core", None) is not None:
-            self.core.close()
-            self.core = None
-
-
-_BACKGROUNDS: dict = {}
-
-
-def render_top_down(track, xy: np.ndarray, yaw: float, size: int = 400) -> np.ndarray:
-    """A top-down RGB frame ``[size, size, 3]`` uint8 of ``track`` with the car at ``xy``, ``yaw``."""
-    import cv2
-
-    lo = np.minimum(track.left_edge.min(0), track.right_edge.min(0)) - 10.0
-    hi = np.maximum(track.left_edge.max(0), track.right_edge.max(0)) + 10.0
-    scale = (size - 1) / float(np.max(hi - lo))
-
-    def px(pts):
-        q = (np.asarray(pts) - lo) * scale
-        return np.stack([q[..., 0], size - 1 - q[..., 1]], -1).astype(np.int32)
-
-    key = (id(track), size)
-    if key not in _BACKGROUNDS:
-        bg = np.empty((size, size, 3), dtype=np.uint8)
-        bg[:] = (_surf.COLORS[_surf.GRASS_ID] * 255).astype(np.uint8)
-        m = len(track)
-        for i in range(m):
-            j = (i + 1) % m
-            quad = px(np.stack([track.left_edge[i], track.left_edge[j], track.right_edge[j], track.right_edge[i]]))
-            cv2.fillConvexPoly(bg, quad, tuple(int(c) for c in _surf.COLORS[track.surface_ids[i]] * 255))
-        cv2.polylines(bg, [px(track.left_edge)], True, (255, 255, 255), 1)
-        cv2.polylines(bg, [px(track.right_edge)], True, (255, 255, 255), 1)
-        _BACKGROUNDS[key] = bg
-    img = _BACKGROUNDS[key].copy()
-    line = px(np.stack([track.to_world(0.0, track.w_left[0]), track.to_world(0.0, -track.w_right[0])]))
-    cv2.line(img, tuple(line[0]), tuple(line[1]), (220, 30, 30), 2)
-    c = px(xy)
-    tip = px(np.asarray(xy) + 12.0 / scale * np.array([math.cos(yaw), math.sin(yaw)]))
-    cv2.circle(img, tuple(c), 5, (230, 20, 20), -1)
-    cv2.line(img, tuple(c), tuple(tip), (255, 255, 0), 2)
-    return img
-
-
-class _LearnerView:
-    """The learners of a race core as the camera sees them (:class:`torcsrl.envs.camera.CarCameras` reads ``fleet``,
-    ``slot``, ``car_tracks``, ``_geometry``, ``steps``, ``sensors``, ``track_origins``): frames are rendered for the
-    learners only, and race group g's copy of a track is a visual world of its own (virtual slot
-    ``slot + n_slots x g``, at the group's origin), so each learner sees its own opponents."""
-
-    def __init__(self, core: RaceCore) -> None:
-        self._core = core
-        self.sensors = core.sensors
-        self.fleet = _LearnerFleet(core)
-        self._geometry = _Cycle(core._geometry)
-
-    @property
-    def slot(self) -> np.ndarray:
-        c = self._core
-        nl = c.n_learners
-        return c.slot[:nl] + len(c._geometry) * np.arange(nl)
-
-    @property
-    def car_tracks(self) -> list:
-        return self._core.car_tracks[: self._core.n_learners]
-
-    @property
-    def steps(self) -> np.ndarray:
-        return self._core.steps[: self._core.n_learners]
-
-    @property
-    def track_origins(self) -> np.ndarray:
-        c = self._core
-        k = len(c._geometry)
-        g = np.arange(k * c.n_learners) // k
-        return c.track_origins[np.arange(k * c.n_learners) % k] + np.stack([np.zeros(len(g)), g * TRACK_SPACING_M], 1)
-
-
-class _TrackSlots(Sequence):
-    """The base :class:`~torcsrl.envs.track.Track` of each slot, by name, loaded on first access: the first ``loaded``
-    at once, the rest (a procedural pool of ~100 generated tracks, ~10 ms each) when a car first draws them. A
-    generated track is a function of its name, so the order of loading changes nothing."""
-
-    def __init__(self, names: Sequence[str], loaded: int = 0) -> None:
-        self._names = list(names)
-        self._tracks: list[Any] = [None] * len(self._names)
-        for i in range(min(int(loaded), len(self._names))):
-            self[i]
-
-    def __len__(self) -> int:
-        return len(self._names)
-
-    def __getitem__(self, i):
-        if isinstance(i, slice):
-            return [self[j] for j in range(*i.indices(len(self)))]
-        t = self._tracks[i]
-        if t is None:
-            t = self._tracks[i] = _tracks.load(self._names[i])
-        return t
-
-
-class _Cycle:
-    def __init__(self, items: list) -> None:
-        self._items = items
-
-    def __getitem__(self, i: int):
-        return self._items[int(i) % len(self._items)]
-
-
-class _LearnerFleet:
-    def __init__(self, core: RaceCore) -> None:
-        self._core = core
-        self.params = core.fleet.params
-
-    @property
-    def pos(self) -> np.ndarray:
-        return self._core.fleet.pos[: self._core.n_learners]
-
-    @property
-    def rotation(self) -> np.ndarray:
-        return self._core.fleet.rotation[: self._core.n_learners]
