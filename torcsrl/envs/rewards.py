@@ -94,7 +94,7 @@ class Reward:
             raise ValueError(f"reward weights must be finite numbers, got {bad}; allowed: any finite weight per term of {', '.join(REWARD_TERMS)}")
         self._w = np.array([self.weights[k] for k in REWARD_TERMS])
         n_core = len(REWARD_TERMS) - len(EXTRA_TERMS)
-        self._w_core = self._w[:n_core]
+        self.core_weights = self._w[:n_core]
         #: (row, weight) of each extra term with a non-zero weight
         self.extra = [(n_core + j, self.weights[k]) for j, k in enumerate(EXTRA_TERMS) if self.weights[k] != 0.0]
         try:
@@ -122,7 +122,7 @@ class Reward:
 
     def __call__(self, terms: np.ndarray) -> np.ndarray:
         """Scalar rewards ``[N]`` from terms ``[T, N]``."""
-        total = self._w_core @ terms[:len(self._w_core)]
+        total = self.core_weights @ terms[:len(self.core_weights)]
         for row, w in self.extra:
             total = total + w * terms[row]
         return self.scale * total
