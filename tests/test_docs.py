@@ -186,5 +186,9 @@ def test_configuration_reference_renders():
         rel = path.relative_to(CONF)
         if rel.parts[0] == "degradation" and "." in path.stem:
             assert f"`{path.stem}`" in page, rel
+        elif path.name == "base.yaml":
+            assert f"`{rel.parent}/base`" in page, rel
+        elif len(rel.parts) == 1:
+            assert f"`conf/{rel}`" in page, rel
         else:
-            assert str(rel.with_suffix("")).split("/", 1)[-1] in page, rel
+            assert f"`{rel.parent}={path.stem}`" in page, rel

@@ -133,7 +133,7 @@ def _groups() -> list[Path]:
     _, _, defaults = parse(CONF / "train.yaml")
     for entry, _ in defaults:
         name = entry.split(":", 1)[0].replace("override ", "").strip()
-        if (CONF / name).is_dir() and CONF / name not in order:
+        if "/" not in name and (CONF / name).is_dir() and CONF / name not in order:  # hydra/* comes with hydra/
             order.append(CONF / name)
     order += sorted(p for p in CONF.iterdir() if p.is_dir() and p not in order)
     return order
@@ -147,8 +147,8 @@ def _group(group: Path) -> list[str]:
     if base.exists():
         out += _section(base, f"`{rel}/base` (shared by the options)", "###")
     options = [f for f in files if f != base]
-    names = [str(f.relative_to(group))[: -len(".yaml")] for f in options]
-    out += ["Options: " + ", ".join(f"`{n}`" for n in names) + f" (`{rel}=<option>`).", ""]
+    names = [f"{f.relative_to(CONF).parent}={f.stem}" for f in options]  # hydra/launcher=slurm: nested groups
+    out += ["Options: " + ", ".join(f"`{n}`" for n in names) + ".", ""]
     if rel.name in COMPACT:
         single = [f for f in options if "." in f.stem]
         out += ["| option | what it is |", "|---|---|"]
@@ -161,7 +161,7 @@ def _group(group: Path) -> list[str]:
                 out += _section(f, f"`{rel}={f.stem}`", "###")
         return out
     for f, name in zip(options, names):
-        out += _section(f, f"`{rel}={name}`", "###")
+        out += _section(f, f"`{name}`", "###")
     return out
 
 
