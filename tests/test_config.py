@@ -22,7 +22,7 @@ from hydra.errors import ConfigCompositionException, MissingConfigException
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 
-from torcsrl.training import ConfigError, problems, validate
+from torcsrl.config import ConfigError, problems, validate
 from torcsrl.envs import surfaces, tracks
 from torcsrl.envs.rewards import PRESETS as REWARD_PRESETS
 from torcsrl.envs.sensors import STATE_SLOTS

@@ -12,7 +12,8 @@ from omegaconf import OmegaConf, open_dict
 from tensordict import TensorDict
 
 import torcsrl.training.offpolicy as offpolicy_mod
-from torcsrl.training import ConfigError, train, validate
+from torcsrl.config import ConfigError, validate
+from torcsrl.training import train
 from torcsrl.training.curriculum import Criterion, Curriculum, CurriculumError, Stage
 from torcsrl.envs.surfaces import SURFACES
 from torcsrl.pipeline import make_eval_envs, make_train_env

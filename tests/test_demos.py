@@ -155,7 +155,7 @@ def test_imitation_baselines_train_and_evaluate_like_rl_drivers(tmp_path, demo_d
 def test_shards_written_apart_sample_as_one_pool(tmp_path, demo_dir, other_shard):
     """demos.path=[A, B]: shards (e.g. written on two cores with different seeds) are sampled as one pool, every
     batch in proportion to the shards' rows; an empty list or a wrong folder fails in one line."""
-    from torcsrl.training import validate
+    from torcsrl.config import validate
     from torcsrl.training.demos import DemoPool, make_demo_env
     from torcsrl.training.demos import make_demos
     from torcsrl.pipeline import pipeline_record
@@ -245,7 +245,7 @@ def test_pedal_expectile_leans_the_fit_towards_braking():
     from tensordict import TensorDict
 
     from torcsrl.agents._build import bc_step
-    from torcsrl.training import validate
+    from torcsrl.config import validate
 
     class Const(torch.nn.Module):  # the smallest actor: one free action
         def __init__(self):
@@ -286,7 +286,7 @@ def test_near_car_weight_leans_the_fit_to_the_rows_in_traffic():
     from tensordict import TensorDict
 
     from torcsrl.agents._build import bc_step, near_car_weights
-    from torcsrl.training import validate
+    from torcsrl.config import validate
     from torcsrl.training.imitation import near_car_setting
 
     opp = torch.ones(64, 36)
@@ -403,7 +403,7 @@ def test_slow_rows_weigh_more_in_the_imitation_fit():
     from tensordict import TensorDict
 
     from torcsrl.agents._build import bc_step, slow_weights
-    from torcsrl.training import validate
+    from torcsrl.config import validate
     from torcsrl.envs.sensors import STATE_SLOTS
     from torcsrl.training.imitation import slow_setting
 

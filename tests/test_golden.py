@@ -75,7 +75,7 @@ def _same_number(got, want) -> bool:
 # ---------------------------------------------------------------------------------------------------- smoke runs
 def train_case(algo: str, env: str, run_dir: Path) -> dict:
     """One seeded smoke run: ``{"metrics": {...}, "policy": {name: tensor}}``."""
-    from torcsrl.train import train
+    from torcsrl.training import train
 
     torch.set_num_threads(1)
     cfg = compose_config(*_PER_ENV[env], "debug=smoke", f"algo={algo}", "seed=3", *_PER_ALGO.get(algo, []),

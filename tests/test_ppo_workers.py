@@ -11,7 +11,8 @@ import torch
 
 from torcsrl import agents
 from torcsrl.pipeline import make_train_env
-from torcsrl.training import ConfigError, train, validate
+from torcsrl.config import ConfigError, validate
+from torcsrl.training import train
 from torcsrl.training.common import make_networks
 from torcsrl.training.onpolicy import WorkerRollouts, make_rollout_collector, worker_config
 from torcsrl.utils.logging import read_csv_metric

@@ -11,7 +11,8 @@ import pytest
 import torch
 
 from torcsrl import agents
-from torcsrl.training import ConfigError, train, validate
+from torcsrl.config import ConfigError, validate
+from torcsrl.training import train
 from torcsrl.policies import CheckpointPolicy, export_policy
 from torcsrl.pipeline import critic_obs_keys, make_eval_envs, make_train_env, stored_keys
 from torcsrl.training.common import make_networks

@@ -10,7 +10,8 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from torcsrl.training import ConfigError, train, validate
+from torcsrl.config import ConfigError, validate
+from torcsrl.training import train
 from torcsrl.utils.logging import read_csv_metric
 
 ROOT = Path(__file__).resolve().parents[1]

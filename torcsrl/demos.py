@@ -1,7 +1,7 @@
 """Write expert demonstrations: ``python -m torcsrl.demos [train overrides] demos.frames=50000 [demos.out=DIR]``.
 
 The Hydra entry of :func:`torcsrl.training.demos.write_demos`: the training config (``conf/train.yaml``) is composed
-and checked (:func:`torcsrl.training.validate`), and the config's teacher drives its env into ``demos.out`` (default
+and checked (:func:`torcsrl.config.validate`), and the config's teacher drives its env into ``demos.out`` (default
 ``outputs/demos/<time>``). Bad input ends with one line ``torcsrl.demos: error: ...`` (exit 2).
 """
 
@@ -14,7 +14,7 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig
 
-from torcsrl.training import validate
+from torcsrl.config import validate
 from torcsrl.training.demos import write_demos
 
 __all__ = ["main"]

@@ -43,6 +43,7 @@ from torcsrl.transforms import (
     normalize_transform,
     obs_scale,
 )
+from torcsrl.utils.seq import as_list
 
 __all__ = ["env_kwargs", "build_base_env", "transformed", "observation_transforms", "make_train_env", "make_eval_envs",
            "actor_obs_keys", "critic_obs_keys", "stored_keys", "state_history", "frame_history", "frame_layout", "obs_layout",
@@ -463,9 +464,12 @@ def _check_race_env(env: Mapping, key, mine, out: list[str]) -> None:
     opponents' policies are loaded by :func:`torcsrl.config.problems` (a layer above: they are policies)."""
     # the race env's modules (pybullet) only when a config names env=race
     from torcsrl.envs import surfaces, tracks
-    from torcsrl.envs.race import ACTION_MODES, START_MODES
+    from torcsrl.envs.race import ACTION_MODES, START_MODES, episode_setting_problems
     from torcsrl.envs.rewards import Reward
     from torcsrl.envs.sensors import check_sensors
+    from torcsrl.envs.tracks.procedural import ProceduralSpec
+    from torcsrl.envs.traffic import TrafficError, TrafficSpec
+    from torcsrl.envs.vehicle import VehicleParams, available_vehicles
 
     if mine("track") and env.get("track") is not None:
         try:
@@ -474,14 +478,12 @@ def _check_race_env(env: Mapping, key, mine, out: list[str]) -> None:
             sets = ", ".join(f"set:{s}" for s in sorted(tracks.track_sets()))
             out.append(f"{key('track')}: {err}; sets: {sets}; or a list of those")
     if mine("procedural") and env.get("procedural") is not None:
-        from torcsrl.envs.tracks.procedural import ProceduralSpec
-
         try:
             ProceduralSpec.from_config(env["procedural"])
         except (ValueError, TypeError) as err:
             out.append(f"{key('procedural')}: {err}")
     if mine("surface"):
-        for s in _as_list(env.get("surface")):
+        for s in as_list(env.get("surface"), atoms=(str, Mapping)):
             if s is not None and s not in surfaces.ROAD_SURFACES:
                 out.append(f"{key('surface')}: unknown surface {s!r}; allowed: {', '.join(surfaces.ROAD_SURFACES)} "
                            "(a list: one drawn per episode; null: each track's own)")
@@ -500,8 +502,6 @@ def _check_race_env(env: Mapping, key, mine, out: list[str]) -> None:
             Reward("summers_final", env["reward_scale"])
         except (ValueError, TypeError) as err:
             out.append(f"{key('reward_scale')}: {err}")
-    from torcsrl.envs.race import episode_setting_problems
-
     given = {k: env[k] for k in ("spawn_jitter", "offtrack_grace_s", "no_progress_s", "backwards_m") if k in env and mine(k)}
     for k, msg in episode_setting_problems(**given):
         out.append(f"{key(k)}: {msg}")
@@ -510,13 +510,9 @@ def _check_race_env(env: Mapping, key, mine, out: list[str]) -> None:
     if mine("action_mode") and env.get("action_mode") is not None and env["action_mode"] not in ACTION_MODES:
         out.append(f"{key('action_mode')}: unknown action_mode {env['action_mode']!r}; allowed: {', '.join(ACTION_MODES)}")
     if mine("vehicle") and env.get("vehicle") is not None:
-        from torcsrl.envs.vehicle import available_vehicles
-
         if env["vehicle"] not in available_vehicles():
             out.append(f"{key('vehicle')}: unknown vehicle {env['vehicle']!r}; allowed: {', '.join(available_vehicles())}")
     if mine("vehicle_overrides") and env.get("vehicle_overrides"):
-        from torcsrl.envs.vehicle import VehicleParams
-
         fields = {f.name for f in dataclasses.fields(VehicleParams)} - {"name"}
         vo = env["vehicle_overrides"]
         if not isinstance(vo, Mapping):
@@ -528,8 +524,6 @@ def _check_race_env(env: Mapping, key, mine, out: list[str]) -> None:
     if mine("camera"):
         _check_camera(env.get("camera"), key("camera"), out)
     if mine("traffic") and env.get("traffic") is not None:
-        from torcsrl.envs.traffic import TrafficError, TrafficSpec
-
         try:
             TrafficSpec.from_config(env["traffic"])
         except TrafficError as err:
@@ -647,6 +641,3 @@ def _severity_ok(sev: Any, path: str, out: list[str]) -> bool:
         return False
     return True
 
-
-def _as_list(x: Any) -> list:
-    return list(x) if isinstance(x, (list, tuple)) else [x]

@@ -1,6 +1,6 @@
 """Train a racing driver: ``python -m torcsrl.train [algo=td3|ddpg|d4pg|sac|ppo|bc|dagger] [env=race|toy] [overrides]``.
 
-The Hydra entry: it checks the config (:func:`torcsrl.training.validate`), holds the run folder, writes the run
+The Hydra entry: it checks the config (:func:`torcsrl.config.validate`), holds the run folder, writes the run
 records (``config.yaml``, ``git_rev.txt``, ``metrics.json``) and runs :func:`torcsrl.training.train`, which dispatches
 on ``algo`` to :mod:`torcsrl.training.offpolicy`, :mod:`~torcsrl.training.onpolicy` or
 :mod:`~torcsrl.training.imitation`. Bad input ends the run with one line ``torcsrl.train: error: ...`` (exit 2);
@@ -14,8 +14,8 @@ import sys
 
 from omegaconf import DictConfig
 
-from torcsrl.config import objective, save_run_info, write_metrics
-from torcsrl.training import train, validate
+from torcsrl.config import objective, save_run_info, validate, write_metrics
+from torcsrl.training import train
 from torcsrl.training.common import resolve_run_dir, resume_command
 from torcsrl.utils.checkpoint import CheckpointError, latest_checkpoint
 from torcsrl.utils.faults import claim_run_dir, cli_error, graceful_termination

@@ -138,7 +138,7 @@ def test_a_grip_student_trains_logs_its_estimate_and_drives_from_its_checkpoint(
     (["algo=dagger", "state_history=4", "algo.actor_readings=2"], r"shape a grip head, which algo.grip_estimate=0.0 does not build"),
 ])
 def test_a_grip_head_that_cannot_learn_is_one_line(over, msg):
-    from torcsrl.training import problems
+    from torcsrl.config import problems
 
     found = [p for p in problems(compose_config(*RACE, *over)) if "grip" in p or "actor_readings" in p]
     assert len(found) == 1 and "\n" not in found[0], found

@@ -8,7 +8,7 @@ import pytest
 import torch
 from _faults import cfg_for
 
-from torcsrl.training import ConfigError, validate
+from torcsrl.config import ConfigError, validate
 
 
 def test_unknown_device_is_refused():

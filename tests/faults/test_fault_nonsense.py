@@ -7,7 +7,7 @@ import math
 import pytest
 from _faults import cfg_for, one_line, one_line_error, run_cli, run_main
 
-from torcsrl.training import ConfigError, problems, validate
+from torcsrl.config import ConfigError, problems, validate
 from torcsrl.envs.rewards import Reward
 
 

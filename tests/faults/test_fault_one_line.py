@@ -149,7 +149,7 @@ def test_spawn_jitter_of_one_number():
     with pytest.raises(ValueError, match=r"spawn_jitter must be two finite half-ranges") as e:
         make_env(track="oval", spawn_jitter=(1,))
     assert "\n" not in str(e.value)
-    from torcsrl.training import problems
+    from torcsrl.config import problems
 
     assert any(p.startswith("env.spawn_jitter:") for p in problems(cfg_for("env.spawn_jitter=[1]", toy=False)))
 

@@ -77,7 +77,7 @@ def test_demonstrations_of_another_history_are_refused_in_one_line(tmp_path):
 def test_a_history_the_actor_cannot_have_is_one_line(over, msg):
     import re
 
-    from torcsrl.training import problems
+    from torcsrl.config import problems
 
     found = problems(compose_config(*RACE, *over))
     assert any(re.search(msg, line) for line in found), found

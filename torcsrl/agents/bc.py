@@ -15,6 +15,7 @@ from typing import Any
 from torchrl.envs import EnvBase
 
 from torcsrl.agents import _build
+from torcsrl.agents._build import PRECISIONS, bc_step  # noqa: F401 -- public: imitation, TD3+BC pre-training, config check
 
 NAME = "bc"
 

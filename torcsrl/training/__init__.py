@@ -5,9 +5,10 @@ validate -> checkpoint): :mod:`~torcsrl.training.offpolicy` (DDPG, TD3, D4PG, SA
 (PPO), :mod:`~torcsrl.training.imitation` (BC, DAgger); what they share is :mod:`~torcsrl.training.common`'s;
 demonstrations and curricula are :mod:`~torcsrl.training.demos` and :mod:`~torcsrl.training.curriculum`.
 
-:func:`problems` / :func:`validate` are the whole config check: :func:`torcsrl.config.problems` (the config's own
-sections and the observation pipeline's) and this layer's subsystems' (:func:`torcsrl.training.demos.check`,
-:func:`torcsrl.training.curriculum.check`, which checks every stage's config with :func:`problems` again).
+:func:`problems` / :func:`validate` are the whole config check, gathered from the subsystems that own each part:
+:func:`torcsrl.training.checks.check` (the config's own sections), :func:`torcsrl.pipeline.check` (env, degradations,
+histories, critic keys), :func:`torcsrl.training.demos.check` and :func:`torcsrl.training.curriculum.check` (which
+checks every stage's config with :func:`problems` again); :mod:`torcsrl.config` gives them to the entry points.
 
 ``python -m torcsrl.train`` is the Hydra entry (:mod:`torcsrl.train`); tests call :func:`train` on a config composed
 with Hydra's ``compose`` API.
@@ -21,9 +22,9 @@ from typing import Any
 
 from omegaconf import DictConfig, open_dict
 
-from torcsrl import agents, config
-from torcsrl.config import ConfigError
-from torcsrl.training import curriculum, demos, imitation, offpolicy, onpolicy
+from torcsrl import agents, pipeline
+from torcsrl.training import checks, curriculum, demos, imitation, offpolicy, onpolicy
+from torcsrl.training.checks import ConfigError
 from torcsrl.training.common import resolve_run_dir
 from torcsrl.utils.faults import claim_run_dir
 
@@ -32,18 +33,18 @@ __all__ = ["ConfigError", "problems", "validate", "train"]
 
 def problems(cfg: DictConfig | Mapping) -> list[str]:
     """Every problem of the training config ``cfg`` as ``"<key>: <message>"`` lines (empty when it is sound)."""
-    c, out = config.resolve(cfg)
+    c, out = checks.resolve(cfg)
     if c is None:
         return out
-    out = config.check(c) + demos.check(c)
+    out = checks.check(c) + pipeline.check(c) + demos.check(c)
     if c.get("curriculum") is not None:  # its stages, and every stage's config checked like this one
         out += curriculum.check(cfg, list(out), problems)
     return out
 
 
 def validate(cfg: DictConfig | Mapping) -> None:
-    """Raise :class:`~torcsrl.config.ConfigError` listing every problem of ``cfg`` (:func:`problems`); None if it is sound."""
-    config.raise_problems(problems(cfg))
+    """Raise :class:`ConfigError` listing every problem of ``cfg`` (:func:`problems`); None if it is sound."""
+    checks.raise_problems(problems(cfg))
 
 
 def train(cfg: DictConfig) -> dict[str, Any]:

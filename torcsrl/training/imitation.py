@@ -39,7 +39,7 @@ from tensordict.nn import TensorDictModule
 from torchrl.envs import EnvBase
 
 from torcsrl import agents
-from torcsrl.agents._build import bc_step
+from torcsrl.agents.bc import bc_step
 from torcsrl.agents.exploration import DeviceActorModule
 from torcsrl.envs.sensors import PRIVILEGED_SLOTS, STATE_SCALE, STATE_SLOTS
 from torcsrl.nets import shift_pad, split_obs_keys

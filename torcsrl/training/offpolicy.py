@@ -44,7 +44,7 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
 from torcsrl import agents
-from torcsrl.agents._build import bc_step
+from torcsrl.agents.bc import bc_step
 from torcsrl.pipeline import (
     actor_obs_keys,
     critic_obs_keys,
