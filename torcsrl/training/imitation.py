@@ -292,7 +292,7 @@ def _normalised(cfg: DictConfig) -> bool:
 
 
 def near_car_setting(cfg: DictConfig, obs_keys: list[str]) -> tuple[float, float] | None:
-    """``(weight, reach)`` of :func:`torcsrl.agents._build.bc_step` from ``algo.bc_near_car_weight`` and
+    """``(weight, reach)`` of :func:`torcsrl.agents.bc.bc_step` from ``algo.bc_near_car_weight`` and
     ``algo.bc_near_car_m`` (the reach in metres, converted to the stored units of ``opponents``: /200 m when
     ``env.normalize``), or None when the weight is 1. ValueError (one line) when the actor reads no opponents sensor."""
     weight = _row_weight(cfg, "bc_near_car_weight", obs_keys, "opponents", "the opponents sensor")
@@ -303,7 +303,7 @@ def near_car_setting(cfg: DictConfig, obs_keys: list[str]) -> tuple[float, float
 
 
 def slow_setting(cfg: DictConfig, obs_keys: list[str]) -> tuple[float, float, int, int] | None:
-    """``(weight, below, slot, reading)`` of :func:`torcsrl.agents._build.bc_step` from ``algo.bc_slow_weight`` and
+    """``(weight, below, slot, reading)`` of :func:`torcsrl.agents.bc.bc_step` from ``algo.bc_slow_weight`` and
     ``algo.bc_slow_kmh`` (the speed in km/h, converted to the stored units of ``state``: divided by its scale when
     ``env.normalize``), or None when the weight is 1. ValueError (one line) when the actor reads no ``state``."""
     weight = _row_weight(cfg, "bc_slow_weight", obs_keys, "state", "the state's speedX_kmh")
