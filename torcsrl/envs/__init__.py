@@ -1,6 +1,8 @@
 """The simulator and its faces: tracks, vehicle, sensors, rewards, the gymnasium and TorchRL envs.
 
-- ``gymnasium.make("torcsrl/Race-v0", track=..., surface=..., ...)``: one car, gymnasium API.
+- ``gymnasium.make("torcsrl/Race-v0", track=..., surface=..., ...)``: one car, gymnasium API (a ``Dict`` observation).
+- ``gymnasium.make("torcsrl/RaceFlat-v0", ...)``: the same env, its vector keys as one ``Box``
+  (:class:`torcsrl.envs.flat.FlatObservation`), for code that sizes networks from ``observation_space.shape``.
 - ``torcsrl.envs.make_env(...)``: the TorchRL ``EnvBase`` (one car, or ``num_cars=N`` in one world).
 """
 
@@ -10,11 +12,17 @@ from collections.abc import Callable
 from typing import Any
 
 import gymnasium as gym
+from gymnasium.envs.registration import WrapperSpec
 
 ENV_ID = "torcsrl/Race-v0"
+#: Race-v0 under FlatObservation (a gymnasium additional wrapper, so ``gym.make(env.spec)`` rebuilds it as it is).
+FLAT_ENV_ID = "torcsrl/RaceFlat-v0"
 
 if ENV_ID not in gym.registry:
     gym.register(id=ENV_ID, entry_point="torcsrl.envs.race:RaceEnv", disable_env_checker=False)
+if FLAT_ENV_ID not in gym.registry:
+    gym.register(id=FLAT_ENV_ID, entry_point="torcsrl.envs.race:RaceEnv", disable_env_checker=False,
+                 additional_wrappers=(WrapperSpec("FlatObservation", "torcsrl.envs.flat:FlatObservation", {}),))
 
 
 def make_env(
@@ -54,4 +62,4 @@ def make_env(
                         camera=camera, batched=batched, **kwargs)
 
 
-__all__ = ["ENV_ID", "make_env"]
+__all__ = ["ENV_ID", "FLAT_ENV_ID", "make_env"]
