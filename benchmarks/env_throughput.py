@@ -26,7 +26,6 @@ batched race (N = 8 learners, each with its 3 opponents).
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import sys
 import time
@@ -80,41 +79,12 @@ RAY_LEN_M = 200.0
 
 
 def make_raw_racecar():
-    """pybullet_data's racecar URDF driven by random actions, 19 rays of 200 m cast from it each step (a step function
-    returning False: the raw car never ends an episode)."""
-    import pybullet as p
-    import pybullet_data
+    """pybullet_data's racecar URDF driven by random actions, 19 rays of 200 m cast from it each step
+    (:func:`physics_throughput.make_racecar`; the raw car never ends an episode)."""
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    from physics_throughput import make_racecar
 
-    cid = p.connect(p.DIRECT)
-    p.setAdditionalSearchPath(pybullet_data.getDataPath(), physicsClientId=cid)
-    p.setGravity(0, 0, -9.81, physicsClientId=cid)
-    p.setPhysicsEngineParameter(fixedTimeStep=1.0 / 240.0, numSubSteps=0, physicsClientId=cid)
-    p.loadURDF("plane.urdf", physicsClientId=cid)
-    car = p.loadURDF(os.path.join("racecar", "racecar.urdf"), [0, 0, 0.2], physicsClientId=cid)
-    wheels, steering = [2, 3, 5, 7], [4, 6]
-    angles = np.deg2rad(np.linspace(-90.0, 90.0, RAYS))
-    actions = np.random.default_rng(0).uniform(-1.0, 1.0, size=(4096, 2))
-    k = [0]
-
-    def step() -> bool:
-        a = actions[k[0] % 4096]
-        k[0] += 1
-        for w in wheels:
-            p.setJointMotorControl2(car, w, p.VELOCITY_CONTROL, targetVelocity=20.0 * (0.5 + 0.5 * a[0]), force=10.0,
-                                    physicsClientId=cid)
-        for s in steering:
-            p.setJointMotorControl2(car, s, p.POSITION_CONTROL, targetPosition=0.3 * a[1], physicsClientId=cid)
-        for _ in range(5):
-            p.stepSimulation(physicsClientId=cid)
-        (x, y, z), quat = p.getBasePositionAndOrientation(car, physicsClientId=cid)
-        p.getBaseVelocity(car, physicsClientId=cid)
-        yaw = p.getEulerFromQuaternion(quat)[2]
-        frm = [(x, y, z + 0.3)] * RAYS
-        to = [(x + RAY_LEN_M * math.cos(yaw + t), y + RAY_LEN_M * math.sin(yaw + t), z + 0.3) for t in angles]
-        p.rayTestBatch(frm, to, numThreads=1, physicsClientId=cid)
-        return False
-
-    return step, lambda: p.disconnect(cid)
+    return make_racecar(rays=RAYS, ray_len_m=RAY_LEN_M)
 
 
 def make_default_gym_env():

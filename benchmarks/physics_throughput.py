@@ -20,6 +20,7 @@ the ratio compares rounds run side by side, so it is the figure to trust.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import time
@@ -57,8 +58,10 @@ def make_fleet(n: int, backend: str = "auto", control_hz: float = CONTROL_HZ,
     return step, lambda: p.disconnect(cid)
 
 
-def make_racecar() -> tuple[Callable[[], None], Callable[[], None]]:
-    """pybullet_data's racecar URDF: 4 wheel velocity motors + 2 steering position motors, 5 x 240 Hz."""
+def make_racecar(rays: int = 0, ray_len_m: float = 200.0) -> tuple[Callable[[], None], Callable[[], None]]:
+    """pybullet_data's racecar URDF: 4 wheel velocity motors + 2 steering position motors, 5 x 240 Hz, driven by
+    seeded random actions; with ``rays`` > 0 it also casts that many rays of ``ray_len_m`` in a fan over +-90 deg of
+    its heading each step (``rayTestBatch``, as a TORCS rangefinder)."""
     cid = p.connect(p.DIRECT)
     p.setAdditionalSearchPath(pybullet_data.getDataPath(), physicsClientId=cid)
     p.setGravity(0, 0, -9.81, physicsClientId=cid)
@@ -68,6 +71,7 @@ def make_racecar() -> tuple[Callable[[], None], Callable[[], None]]:
     wheels, steering = [2, 3, 5, 7], [4, 6]
     rng = np.random.default_rng(0)
     actions = rng.uniform(-1.0, 1.0, size=(64, 2))
+    angles = np.deg2rad(np.linspace(-90.0, 90.0, rays)).tolist() if rays else []
     state = {"k": 0}
 
     def step() -> None:
@@ -80,8 +84,12 @@ def make_racecar() -> tuple[Callable[[], None], Callable[[], None]]:
             p.setJointMotorControl2(car, s, p.POSITION_CONTROL, targetPosition=0.3 * a[1], physicsClientId=cid)
         for _ in range(5):
             p.stepSimulation(physicsClientId=cid)
-        p.getBasePositionAndOrientation(car, physicsClientId=cid)
+        (x, y, z), quat = p.getBasePositionAndOrientation(car, physicsClientId=cid)
         p.getBaseVelocity(car, physicsClientId=cid)
+        if angles:
+            yaw = p.getEulerFromQuaternion(quat)[2]
+            to = [(x + ray_len_m * math.cos(yaw + t), y + ray_len_m * math.sin(yaw + t), z + 0.3) for t in angles]
+            p.rayTestBatch([(x, y, z + 0.3)] * len(angles), to, numThreads=1, physicsClientId=cid)
 
     return step, lambda: p.disconnect(cid)
 
