@@ -52,6 +52,7 @@ __all__ = [
     "DegradedEnv",
     "KeepClean",
     "LeanTransformedEnv",
+    "MissingKeyError",
     "SENSOR_KEYS",
     "derive_seed",
     "seed_degradations",
@@ -70,6 +71,58 @@ SENSOR_KEYS: dict[str, tuple[str, ...]] = {
 _MASK64 = (1 << 64) - 1
 #: the CPU device (one object: the one-env hot path tests identity, not equality)
 CPU = torch.device("cpu")
+
+
+class MissingKeyError(KeyError, ValueError):
+    """A transform reads an observation key its env does not produce. A ``KeyError`` (a key is missing) and a
+    ``ValueError`` (what the entry points print as a one-line error); ``str()`` is the message itself, without the
+    quotes ``KeyError`` adds."""
+
+    def __str__(self) -> str:
+        return str(self.args[0]) if self.args else ""
+
+
+def _flat_key(key: Any) -> Any:
+    """A one-element tuple key as its string (``("pixels",)`` is ``"pixels"``)."""
+    return key[0] if isinstance(key, tuple) and len(key) == 1 else key
+
+
+def _key_name(key: Any) -> str:
+    return ".".join(key) if isinstance(key, tuple) else str(key)
+
+
+def _sensor_keys(spec: Composite) -> list[str]:
+    """The top-level leaf keys of an observation spec (``rangefinder``, ``state``, …; not the ``info`` group)."""
+    return [_key_name(k) for k in spec.keys() if not isinstance(spec[k], Composite)]
+
+
+def _produced_keys(t: Transform) -> set:
+    """The keys ``t`` (every transform of a Compose) writes besides those it reads: KeepClean's ``<key>_clean``, not
+    the key a degradation rewrites in place."""
+    if isinstance(t, Compose):
+        return set().union(*(_produced_keys(c) for c in t.transforms))
+    return {_flat_key(k) for k in (t.out_keys or ())} - {_flat_key(k) for k in (t.in_keys or ())}
+
+
+def _keys_under(t: Transform) -> tuple[list[str], set] | None:
+    """``(the base env's sensor keys, every key the base env or a transform of the stack produces)`` for ``t``
+    attached under an env; ``None`` while ``t`` sits in a Compose no env holds yet. Reads the base env's
+    observation spec only (the transforms' specs are left to TorchRL's lazy computation)."""
+    produced: set = set()
+    ref = t.__dict__.get("_container")
+    node = ref() if ref is not None else None
+    while isinstance(node, Compose):
+        produced |= _produced_keys(node)
+        ref = node.__dict__.get("_container")
+        node = ref() if ref is not None else None
+    if not isinstance(node, EnvBase):
+        return None
+    while isinstance(node, TransformedEnv):
+        if node.transform is not None:
+            produced |= _produced_keys(node.transform)
+        node = node.base_env
+    spec = node.observation_spec
+    return _sensor_keys(spec), produced | {_flat_key(k) for k in spec.keys(True)}
 
 
 def _splitmix64(x: int) -> int:
@@ -517,6 +570,28 @@ class Degradation(Transform):
         return td
 
     # specs ------------------------------------------------------------------------
+    def _missing_key(self, key: Any, env_keys: Sequence[str]) -> MissingKeyError:
+        """``camera.fog reads 'pixels', which this env does not produce; its keys: rangefinder, state``."""
+        return MissingKeyError(f"{self.label or type(self).__name__} reads {_key_name(key)!r}, which this env does "
+                               f"not produce; its keys: {', '.join(env_keys) or '(none)'}")
+
+    def set_container(self, container: Transform | EnvBase) -> None:
+        """TorchRL's attachment (a ``TransformedEnv`` built on this transform, ``append_transform``, a Compose
+        joining an env), plus a check: once under an env, each in key must be one the env or a transform of the
+        stack produces, else :class:`MissingKeyError` in one line naming the key and the env's keys. (TorchRL
+        computes specs lazily: without the check a missing key would surface at the first reset.)"""
+        super().set_container(container)
+        if self.optional or self.missing_tolerance or not self.in_keys:
+            return
+        found = _keys_under(self)
+        if found is None:
+            return
+        env_keys, known = found
+        missing = [k for k in self.in_keys if _flat_key(k) not in known]
+        if missing:
+            self.reset_parent()
+            raise self._missing_key(missing[0], env_keys)
+
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
         keys = set(observation_spec.keys(True, True))
         if self._auto and not self.in_keys:
@@ -527,10 +602,7 @@ class Degradation(Transform):
             if in_key not in keys:
                 if self.optional:
                     continue
-                raise KeyError(
-                    f"{type(self).__name__}: observation key {in_key!r} is not in the env's "
-                    f"observation spec (keys: {sorted(map(str, keys))}). Pass in_keys=[...]."
-                )
+                raise self._missing_key(in_key, _sensor_keys(observation_spec))
             self._check_spec(in_key, observation_spec[in_key])
             if out_key != in_key:
                 observation_spec[out_key] = observation_spec[in_key].clone()
