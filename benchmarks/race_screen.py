@@ -1,4 +1,4 @@
-"""The racer selection screen (issue #20) as one command: races on TRAINING tracks, a table with the eligibility.
+"""The racer selection screen as one command: races on TRAINING tracks, a table with the eligibility.
 
     python benchmarks/race_screen.py --policy A.pt B.pt reference_racer [--episodes 3] [--workers 2] [--out DIR]
     python benchmarks/race_screen.py --policy A.pt --surfaces asphalt dirt     # every track on both (48 races)
@@ -6,7 +6,7 @@
 
 Each policy races 3 scripted experts, 5 laps from the grid, on ``set:train`` and ``gen-10001..10003`` (the training
 seed range), ``--episodes`` races a track, each opponent's pace drawn per race from ``--pace`` ([0.83, 0.87]: around
-the issue's 85 %, so that every race is its own scenario — at one pace the races of a track come from at most K + 1
+85 %, so that every race is its own scenario — at one pace the races of a track come from at most K + 1
 grid slots; the ``scenarios`` column counts the distinct ones), each track on its own surface (the training set's:
 asphalt) or on each of ``--surfaces``. It prints, per policy, races finished, wins,
 collisions a race, how they spread (the races without a contact, the most in one race: a mean of 1.04 can be one

@@ -2,7 +2,7 @@
 
     PYTHONPATH=. python benchmarks/report_throughput.py [--episodes 8] [--max-steps N] [--tracks kidney rallycross]
 
-The grid (issue #17): the shipped driver (``reference``) × 2 held-out tracks × 6 rangefinder
+The grid: the shipped driver (``reference``) × 2 held-out tracks × 6 rangefinder
 degradations × severities 0..5 × 8 episodes of one lap = 2 × (8 + 6 × 5 × 8) = 496 episodes. Both
 paths drive the SAME episodes (the same seeds; the benchmark checks that every row is equal):
 

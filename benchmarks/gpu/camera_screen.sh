@@ -1,5 +1,5 @@
 #!/bin/bash
-# A camera-student recipe screened on a lent GPU machine in one call (issue #18): demonstrations on its CPU cores (one
+# A camera-student recipe screened on a lent GPU machine in one call: demonstrations on its CPU cores (one
 # shard per process), BC on the GPU (device=cuda, two seeds at once), then the training-range circuits screen and
 # hairpins (a TRAINING track) on its cores. Selection data only: nothing here drives set:heldout.
 # Run from the repository root with the cp312 wheels in .whl (see run_device.sh), OUT set, the device tool carrying [.whl]:

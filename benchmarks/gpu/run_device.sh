@@ -1,5 +1,5 @@
 #!/bin/bash
-# GPU checks of the camera path (issue #18 item 6) on a lent GPU machine: EGL vs TinyRenderer frames (PNG + JSON),
+# GPU checks of the camera path on a lent GPU machine: EGL vs TinyRenderer frames (PNG + JSON),
 # frames/s, the CUDA smoke test, pixel-training updates/s on cuda vs cpu. Run from a snapshot of the repo (git archive
 # HEAD into .devsnap) with, beside it, ../.whl (cp312 wheels: torchrl, tensordict, gymnasium, hydra-core, omegaconf and
 # their needs; ../.whl/pyb312/: pybullet 3.2.7 built from source for cp312, since PyPI has no cp312 binary) and

@@ -17,7 +17,7 @@ def test_the_shipped_racer_reads_the_race_sensors_and_laps_alone():
     racer = load_policy("reference_racer")
     assert REFERENCE_RACER_POLICY.is_file() and racer.obs_keys == ("rangefinder", "state", "opponents")
     assert racer.env_overrides["control_hz"] == 10
-    assert isinstance(racer, SideGuard) and racer.settings == SideGuard.DEFAULTS  # the tenth version: a guarded medoid
+    assert isinstance(racer, SideGuard) and racer.settings == SideGuard.DEFAULTS  # a medoid behind the default guard
     assert isinstance(racer.inner, EnsemblePolicy) and racer.inner.reduce == "medoid" and len(racer.inner.members) == 4
     rows, _ = run_cell(racer, "oval", "asphalt", laps=1)  # no opponents: its sectors read free (200 m)
     assert rows[0]["success"] and rows[0]["off_track_events"] == 0

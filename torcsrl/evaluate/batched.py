@@ -24,11 +24,11 @@ chassis in the same physics substep (see *The exceptions* below):
   backend that moves all cars at once does not reproduce the per-car path's float64 bits (batched
   matrix products sum in another order, and the number of rows changes the kernel): the state
   differs from the first step by ~1e-16 relative, far below what the float32 observations resolve.
-  Rarely that reaches the float32 bits: on the #17 reduced grid 8 of 88 episodes had one beam one
-  float32 ulp off (return ~4e-10 relative), so a row may differ in its last digit. Every car is located on its track by the
-  one-car env's chord walk (``RaceCore.scalar_locate_max_cars``; :meth:`Track.track_points` walks
-  every car at once with the walk's bits; the windowed projection may put a car standing exactly on
-  the start line at s = L - ε instead of 0). The cars are dealt over pybullet worlds of
+  Rarely that reaches the float32 bits: on a reduced grid of ``benchmarks/report_throughput.py`` 8 of 88 episodes
+  had one beam one float32 ulp off (return ~4e-10 relative), so a row may differ in its last digit. Every car is
+  located on its track by the one-car env's chord walk (``RaceCore.scalar_locate_max_cars``;
+  :meth:`Track.track_points` walks every car at once with the walk's bits; the windowed projection may put a car
+  standing exactly on the start line at s = L - ε instead of 0). The cars are dealt over pybullet worlds of
   :data:`CARS_PER_WORLD` (``RaceCore(cars_per_world=...)``): a car moves in its world as it would in
   one shared world, and the collision broadphase of cars that drive the same line stays cheap;
 * **policy**: a batched matrix product does not give the same float32 bits as one row at a time
@@ -40,11 +40,12 @@ The exceptions: a chassis that touches the ground (hard cornering or braking at 
 stop, a car leaving the road; the car model gives the body a collision box) makes a contact that pybullet's solver solves
 together with the contacts other cars have in the same substep, so those cars' numbers differ from
 their one-car runs in the last bits from then on, and their episodes diverge like any chaotic
-trajectory (``minimumSolverIslandSize=1`` does not separate them). On the issue #17 grid this touched
-0 (248 cars at once) and 19 (64 cars, refilled) of the 248 kidney episodes, and some rallycross ones (``benchmarks/report_throughput.py`` counts
-them); the seeds, and with them common random numbers, are unaffected. And when the chord-by-chord
-walk that locates a car on its track fails for one car (far off the road), ``RaceCore`` locates every
-car of that step by the vectorised projection, which may differ from the walk in the last bits.
+trajectory (``minimumSolverIslandSize=1`` does not separate them). On the grid of
+``benchmarks/report_throughput.py`` (which counts them) this touched 0 (248 cars at once) and 19 (64 cars, refilled)
+of the 248 kidney episodes, and some rallycross ones; the seeds, and with them common random numbers, are
+unaffected. And when the chord-by-chord walk that locates a car on its track fails for one car (far off the road),
+``RaceCore`` locates every car of that step by the vectorised projection, which may differ from the walk in the
+last bits.
 
 Supported policies: checkpoint actors on vector observations (rangefinder, state, opponents; with a state
 history and a grip head too), which is what a robustness grid drives thousands of times. Others (the expert, scripted drivers, the random
