@@ -28,6 +28,8 @@ class RaceEnv(gym.Env, EzPickle):
     A raycast car (pybullet; ~1,100 kg, 2.6 m wheelbase, tyre forces from slip scaled by the grip
     of the surface under each wheel) drives on a bundled or generated track. The task is to drive
     fast without leaving the track, as in the TORCS studies (Summers 2022, Andersson et al.).
+    ``gymnasium.make("torcsrl/Race-v0", ...)`` observes a ``Dict``; ``gymnasium.make("torcsrl/RaceFlat-v0", ...)``
+    takes the same arguments and observes the vector keys as one ``Box`` (:mod:`torcsrl.envs.flat`).
 
     ## Action Space
     ``Box(-1, 1, (2,), float32)`` with ``action_mode="combined"`` (default):
@@ -43,26 +45,53 @@ class RaceEnv(gym.Env, EzPickle):
     automatic.
 
     ## Observation Space
-    ``Dict`` with the keys chosen by ``sensors`` (default ``("rangefinder", "state")``):
+    ``Dict`` with the keys chosen by ``sensors`` (default ``("rangefinder", "state")``), float32 unless said:
 
-    - ``rangefinder``: ``Box(-1, 200, (19,), float32)`` [m] — distance to the track edge along beams at
+    - ``rangefinder``: ``Box(-1, 200, (19,))`` [m] — distance to the track edge along beams at
       −90, −75, −60, −45, −30, −20, −15, −10, −5, 0, 5, 10, 15, 20, 30, 45, 60, 75, 90° from the car's
-      heading (positive = left); all −1 while off the track.
-    - ``state``: ``Box((11,), float32)``, slots (:data:`torcsrl.envs.sensors.STATE_SLOTS`):
-      angle_rad [rad] (car vs track axis), trackPos [-] (0 centre, ±1 edges, > 0 left),
-      speedX/Y/Z_kmh [km/h] (car frame: forward, left, up), wheelSpinVel fl/fr/rl/rr [rad/s],
-      rpm [1/min], gear [-]. Bounds: angle ±π, rpm [0, 20000], gear [0, 10], the rest ±1000.
-    - ``telemetry``: ``Box((9,), float32)``, the on-board slots of ``state`` (speeds, wheel spin, rpm, gear;
-      :data:`torcsrl.envs.sensors.TELEMETRY_SLOTS`): no angle to the axis or trackPos, which need a map.
-    - ``pixels`` ``Box(0, 255, (3, H, W), uint8)`` and ``depth`` ``Box(0, far, (1, H, W), float32)`` [m]
-      from the car-mounted camera, when requested.
+      heading (positive = left; ``rangefinder_angles_deg``, ``rangefinder_range_m`` change them); all −1
+      while off the track.
+    - ``state``: ``Box((11,))``, slots (:data:`torcsrl.envs.sensors.STATE_SLOTS`):
 
-    Normalised versions (divide by :func:`torcsrl.envs.sensors.obs_scale`) are in [−1, 1].
+      | slot | name                           | unit  | meaning                                             |
+      |------|--------------------------------|-------|-----------------------------------------------------|
+      | 0    | angle_rad                      | rad   | heading vs the track axis, > 0 = pointing left      |
+      | 1    | trackPos                       | –     | 0 centreline, +1 left edge, −1 right edge           |
+      | 2    | speedX_kmh                     | km/h  | forward speed, car frame                            |
+      | 3    | speedY_kmh                     | km/h  | leftward speed, car frame                           |
+      | 4    | speedZ_kmh                     | km/h  | upward speed                                        |
+      | 5–8  | wheelSpinVel_fl, fr, rl, rr    | rad/s | wheel spin, > 0 rolling forward                     |
+      | 9    | rpm                            | 1/min | engine speed                                        |
+      | 10   | gear                           | –     | engaged gear                                        |
+
+      Bounds: angle_rad ±π, rpm [0, 20000], gear [0, 10], the rest ±1000 (trackPos beyond ±1: off the track).
+
+    - ``telemetry``: ``Box((9,))``, slots 2–10 of ``state`` (speeds, wheel spin, rpm, gear;
+      :data:`torcsrl.envs.sensors.TELEMETRY_SLOTS`): what the car measures on board, without angle_rad and
+      trackPos, which need a map.
+    - ``opponents``: ``Box(0, 200, (36,))`` [m] — TORCS SCR's opponent sensor: per 10° sector around the car
+      (sector 0 straight back, clockwise), the distance to the nearest other car of its race; 200 = free
+      (always, without ``traffic``).
+    - ``pixels``: ``Box(0, 255, (3, H, W), uint8)`` — RGB from the car-mounted camera (``camera`` settings:
+      width, height, field of view, mount).
+    - ``depth``: ``Box(0, inf, (1, H, W))`` [m] — the camera's z-depth, capped at its far plane (300 m by default).
+
+    Normalised versions (divide by :func:`torcsrl.envs.sensors.obs_scale`) are in about [−1, 1].
 
     ## Rewards
-    ``reward_scale · Σ weight · term`` over the named terms of :mod:`torcsrl.envs.rewards`
-    (speed_cos, speed_sin, track_pos, progress, termination); the default preset is Summers 2022's
-    final reward v_x (cos θ − |sin θ|) [m/s] with −1 on termination. Each term is in ``info``.
+    ``reward_scale · Σ weight · term`` over the named terms of :mod:`torcsrl.envs.rewards` (θ: the car's
+    angle to the track axis; v_x: its forward speed [m/s]):
+
+    - ``speed_cos`` v_x cos θ [m/s]; ``speed_sin`` −v_x |sin θ| [m/s]; ``track_pos`` −v_x |trackPos| [m/s];
+    - ``progress`` Δs along the centreline this step [m]; ``termination`` 1 on the step that terminates;
+    - ``steer_change`` |steering command − the previous step's| [action units];
+    - with ``traffic``: ``collision`` contact impulse with other cars [kN s], ``positions`` race positions
+      gained (− lost), ``gap`` the safe-distance shortfall to the car ahead [-], ``blocking`` lateral moves
+      towards the line of a car close behind [m] (0 without traffic).
+
+    ``reward`` takes a preset (``summers_initial``, ``summers_final`` (default: Summers 2022's
+    v_x (cos θ − |sin θ|) with −1 on termination), ``lau``, ``progress``, ``race``) or weights by term.
+    Each term is in ``info`` as ``reward_<term>``.
 
     ## Starting State
     At rest on the start/finish line (``start="grid"``) or at a uniformly drawn arc length
@@ -70,19 +99,27 @@ class RaceEnv(gym.Env, EzPickle):
     tracks (or surfaces) one is drawn per episode from the env's seed.
 
     ## Episode End
-    *Terminated*: off the track (|trackPos| > 1) for longer than ``offtrack_grace_s``; driving
-    ``backwards_m`` backwards from the furthest point reached; no new furthest point for
-    ``no_progress_s``; the car flipped. *Truncated*: ``max_steps`` control steps, or
-    ``lap_limit`` laps completed (``info["finished"]`` is then True). Never both.
+    *Terminated* (``info["termination"]`` names why): ``off_track``, |trackPos| > 1 for longer than
+    ``offtrack_grace_s``; ``backwards``, ``backwards_m`` behind the furthest point reached; ``no_progress``,
+    no new furthest point for ``no_progress_s``; ``flipped``, the car on its side or roof. *Truncated*:
+    ``max_steps`` control steps, or ``lap_limit`` laps completed (``info["finished"]`` is then True).
+    Never both.
 
     ## Info
     distFromStart [m], distRaced [m], lap (completed laps), curLapTime, lastLapTime, bestLapTime [s]
-    (0 until set, as in TORCS), ``reward_<term>`` for every reward term, ``termination``
-    (the reason, "" if none), ``finished``, ``track``, ``surface``.
+    (0 until set, as in TORCS), surfaceMu [-] (mean friction under the wheels), ``reward_<term>`` for every
+    reward term, ``termination`` (the reason, "" if none), ``finished``, ``track``, ``surface``; with
+    ``traffic`` also racePos, overtakes, collisions, damage, impulse, gapAhead.
 
     ## Arguments
-    See :class:`RaceCore` (every keyword is passed through), plus ``render_mode`` (``"rgb_array"``:
-    a top-down 400×400 frame of the track and the car).
+    Every keyword of :class:`~torcsrl.envs.race.core.RaceCore` (defaults in brackets), among them:
+    ``track`` (a name, ``set:<name>``, ``gen-<seed>`` or a list) [``"road_flow"``]; ``surface`` [the track's];
+    ``sensors`` [``("rangefinder", "state")``]; ``reward`` [``"summers_final"``]; ``reward_scale`` [1.0];
+    ``max_steps`` [2500]; ``lap_limit`` [None]; ``start`` [``"grid"``]; ``spawn_jitter`` [(0, 0)];
+    ``offtrack_grace_s`` [0.0]; ``no_progress_s`` [5.0]; ``backwards_m`` [10.0];
+    ``action_mode`` [``"combined"``]; ``vehicle`` [``"default"``]; ``control_hz`` [50] and ``substeps`` [4];
+    ``camera``; ``traffic``; ``procedural``; ``seed``. Plus ``render_mode``: ``"rgb_array"`` gives a top-down 400×400
+    frame of the track and the car. One car only (``num_cars=1``).
 
     ## Version History
     - v0: initial version.
