@@ -53,7 +53,7 @@ DISTINCT = CODE.replace('e = make_env(track=["hairpins", "oval"])', 'e = make_en
 def test_envs_on_tracks_never_seen_before_keep_rss_flat():
     """Every env on a new generated track: the walls go through reused buffers, so nothing stays behind (the keyed
     wall cache before it leaked ~5 MiB for each new track)."""
-    assert "gen-" in DISTINCT and "cache_clear" in DISTINCT
+    assert "gen-" in DISTINCT and "clear_cache" in DISTINCT
     out = subprocess.run([sys.executable, "-c", DISTINCT], cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     per_env_mib = float(out.stdout.split()[-1])
