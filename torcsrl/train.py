@@ -12,13 +12,9 @@ from __future__ import annotations
 
 import sys
 
-from omegaconf import DictConfig
+from typing import Any
 
-from torcsrl.config import objective, save_run_info, validate, write_metrics
-from torcsrl.training import train
-from torcsrl.training.common import resolve_run_dir, resume_command
-from torcsrl.utils.checkpoint import CheckpointError, latest_checkpoint
-from torcsrl.utils.faults import claim_run_dir, cli_error, graceful_termination
+from torcsrl.utils.faults import cli_error
 
 __all__ = ["main_entry"]
 
@@ -27,7 +23,15 @@ def main_entry() -> None:
     import hydra  # Hydra's app machinery only for the command line
 
     @hydra.main(config_path="conf", config_name="train", version_base="1.3")  # torcsrl/conf -> conf/ (torcsrl.utils.hydra_app.CONF_DIR)
-    def main(cfg: DictConfig) -> float | None:
+    def main(cfg: Any) -> float | None:
+        # deferred: the training stack (torch, torchrl, pybullet: ~10 s) loads after Hydra has composed the config, so
+        # --help and an unknown group option or key answer at once
+        from torcsrl.config import objective, save_run_info, validate, write_metrics
+        from torcsrl.training import train
+        from torcsrl.training.common import resolve_run_dir, resume_command
+        from torcsrl.utils.checkpoint import CheckpointError, latest_checkpoint
+        from torcsrl.utils.faults import claim_run_dir, graceful_termination
+
         run_dir = None
         try:
             with graceful_termination():  # SIGTERM as Ctrl-C: train's finally blocks stop the collector's workers
