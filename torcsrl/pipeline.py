@@ -126,10 +126,12 @@ def build_base_env(name: str, kwargs: dict, policy_loader: Callable[[str], Any] 
     ``torcsrl.policies.load_policy``, handed in by the layer above) loads the race's traffic opponents of kind ``policy``."""
     # each env module is imported when asked for: the toy env runs without pybullet, gym without the race env
     if name == "toy":
+        # deferred: the toy env, only for env=toy
         from torcsrl.envs.toy import make_toy_env
 
         return make_toy_env(**kwargs)
     if name == "gym":
+        # deferred: torchrl's gym wrapper, only for env=toy
         from torchrl.envs import GymEnv
 
         env = GymEnv(kwargs["id"], device=kwargs.get("device", "cpu"))
@@ -138,6 +140,7 @@ def build_base_env(name: str, kwargs: dict, policy_loader: Callable[[str], Any] 
         return env
     if name == "race":
         try:
+            # deferred: pybullet loads with the race env only (the toy env needs none)
             from torcsrl.envs import make_env
         except ImportError as err:
             raise RuntimeError(f"env.name=race needs torcsrl.envs.make_env, which cannot be imported ({err}); use env=toy meanwhile") from None
@@ -297,12 +300,14 @@ def env_signature(name: str) -> dict[str, inspect.Parameter]:
     """Keyword arguments an env accepts: make_env + RaceCore (race) or make_toy_env (toy)."""
     # the env modules (pybullet) only when a config names them
     if name == "race":
+        # deferred: pybullet loads with the race env only (the toy env needs none)
         from torcsrl.envs import make_env
         from torcsrl.envs.race import RaceCore
 
         params = dict(inspect.signature(RaceCore.__init__).parameters)
         params.update(inspect.signature(make_env).parameters)
     else:
+        # deferred: the toy env, only for env=toy
         from torcsrl.envs.toy import make_toy_env
 
         params = dict(inspect.signature(make_toy_env).parameters)

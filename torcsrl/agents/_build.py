@@ -17,7 +17,7 @@ from torchrl.envs import EnvBase
 from torchrl.objectives import LossModule, SoftUpdate
 
 from torcsrl.agents.exploration import ActionNoise, BehaviourPolicy, DeviceActorModule, ParamNoiseActor, StochasticBrake
-from torcsrl.envs.sensors import PRIVILEGED_SLOTS
+from torcsrl.envs.sensors import PRIVILEGED_SLOTS, STATE_SLOTS, TELEMETRY_SLOTS
 from torcsrl.nets import Critic, DeterministicActor, ObsEncoder, shift_pad, split_obs_keys
 
 
@@ -55,8 +55,6 @@ def grip_layout(enc: ObsEncoder, grip_inputs: str = "all", actor_readings: int |
     (None) or ``history`` (every reading of the history keys); ``actor_readings`` R: the MLP reads every feature but
     the history keys' readings older than the newest R (None: all). ValueError (one line) when the features hold no
     history to select from."""
-    from torcsrl.envs.sensors import STATE_SLOTS, TELEMETRY_SLOTS
-
     one = {"state": len(STATE_SLOTS), "telemetry": len(TELEMETRY_SLOTS)}
     if grip_inputs not in ("all", "history"):
         raise ValueError(f"algo.grip_inputs={grip_inputs!r}; allowed: all (every feature), history (the state history only)")

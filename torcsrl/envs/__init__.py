@@ -50,6 +50,7 @@ def make_env(
     (``torcsrl.policies.load_policy``, handed in by the layer above: the env loads no policies itself); a traffic
     with such opponents and no loader fails in one line. Scripted opponents need none.
     """
+    # deferred: torch and torchrl, only for the TorchRL face
     from torcsrl.envs.batched import TorchRaceEnv
 
     if policy_loader is not None and kwargs.get("traffic") is not None:

@@ -53,6 +53,7 @@ SCENES: tuple[Scene, ...] = (
 def _car_fleet(client_id: int, n: int):
     """The vehicle module's cars if it is importable (so the chase and top views show a car)."""
     try:
+        # deferred: optional here (the gallery draws without car bodies)
         from torcsrl.envs.vehicle import CarFleet, make_ground
     except Exception as err:  # pragma: no cover - the vehicle module is optional here
         log.warning("no car bodies in the gallery (%s)", err)

@@ -218,6 +218,7 @@ class Track:
             i0, _ = self._locate(hint)
         else:  # start from the nearest centreline sample (a k-d tree query)
             if "kdtree" not in self._cache:
+                # deferred: scipy.spatial (~1 s to import) only when a track is projected or checked
                 from scipy.spatial import cKDTree
 
                 self._cache["kdtree"] = cKDTree(self.xy)
@@ -452,6 +453,7 @@ class Track:
         return self
 
     def _check_overlap(self, where: str) -> None:
+        # deferred: scipy.spatial (~1 s to import) only when a track is projected or checked
         from scipy.spatial import cKDTree
 
         half = np.maximum(self.w_left, self.w_right)

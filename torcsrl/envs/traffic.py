@@ -347,6 +347,7 @@ class Traffic:
 
     # ------------------------------------------------------------------ episodes
     def _driver(self, track, j: int, pace: float):
+        # deferred: the expert's racing line, only for scripted expert opponents
         from torcsrl.envs.expert import ExpertDriver
 
         ds = self.kinds[j]
@@ -478,6 +479,7 @@ class Traffic:
                 thr[car] = 0.0
                 brk[car] = max(brk[car], min(1.0, (v - v_lim) / 5.0))
         for path, rows in pol_rows.items():
+            # deferred: torch and tensordict, only for opponents driven by a network policy
             import torch
             from tensordict import TensorDict
 

@@ -29,7 +29,7 @@ from pathlib import Path
 import torch
 from tensordict import TensorDict
 
-from .registry import PRESETS, degradation_names, make_degradation, make_preset
+from .registry import PRESETS, applies_to, degradation_names, make_degradation, make_preset
 from .synthetic import road_sequence, track_scans
 
 __all__ = ["make_gallery", "load_frame_source", "hood_frame"]
@@ -45,6 +45,7 @@ def hood_frame(H: int, W: int, scene: str = "oval_straight"):
     """The env's hood camera on one of ``torcsrl.envs.gallery.SCENES`` (square frames only)."""
     if H != W:
         raise ValueError("hood_frame renders square frames")
+    # deferred: the scene renderer (pybullet), only when a gallery is drawn
     from torcsrl.envs.gallery import SCENES, render_scene
 
     by_name = {s.name: s for s in SCENES}
@@ -72,6 +73,7 @@ def load_frame_source(spec: str | None) -> FrameFn | None:
         raise FileNotFoundError(f"--frame {spec}: no such file (or module:function)")
 
     def from_file(H: int, W: int):
+        # deferred: OpenCV only when an image is written
         import cv2
 
         img = cv2.imread(str(path), cv2.IMREAD_COLOR)
@@ -105,6 +107,7 @@ def _episode(transform, data: dict[str, torch.Tensor], T: int) -> TensorDict:
 
 
 def _camera_grid(rows, frame_fn, H, W, seed, path, title):
+    # deferred: matplotlib only when a figure is drawn
     import matplotlib
 
     matplotlib.use("Agg")
@@ -134,6 +137,7 @@ def _camera_grid(rows, frame_fn, H, W, seed, path, title):
 
 
 def _rangefinder_plot(seed, path):
+    # deferred: matplotlib only when a figure is drawn
     import matplotlib
 
     matplotlib.use("Agg")
@@ -165,6 +169,7 @@ def _rangefinder_plot(seed, path):
 
 
 def _state_plot(seed, path):
+    # deferred: matplotlib only when a figure is drawn
     import matplotlib
 
     matplotlib.use("Agg")
@@ -225,8 +230,6 @@ def make_gallery(
 
 
 def _cam_keys(name: str) -> list[str]:
-    from .registry import applies_to
-
     return list(applies_to(name))
 
 

@@ -20,6 +20,7 @@ from torcsrl.envs import tracks
 
 
 def _draw(ax, track, curvature_ax=None, title: str | None = None) -> None:
+    # deferred: matplotlib only when a figure is drawn
     from matplotlib.collections import LineCollection, PolyCollection
 
     m = len(track)
@@ -56,12 +57,14 @@ def _draw(ax, track, curvature_ax=None, title: str | None = None) -> None:
 
 
 def _curv_norm():
+    # deferred: matplotlib only when a figure is drawn
     from matplotlib.colors import LogNorm
 
     return LogNorm(vmin=1e-3, vmax=0.06)
 
 
 def _legend(fig) -> None:
+    # deferred: matplotlib only when a figure is drawn
     from matplotlib.patches import Patch
 
     handles = [Patch(color=_surf.COLORS[i], label=n) for i, n in enumerate(_surf.SURFACE_NAMES)]
@@ -70,6 +73,7 @@ def _legend(fig) -> None:
 
 def plot_track(track, out: str) -> str:
     """Write a PNG of one track: surfaces, edges, start line, centreline coloured by curvature."""
+    # deferred: matplotlib only when a figure is drawn
     import matplotlib
 
     matplotlib.use("Agg")
@@ -88,6 +92,7 @@ def plot_track(track, out: str) -> str:
 
 def plot_library(out: str) -> str:
     """Write one PNG showing every bundled track."""
+    # deferred: matplotlib only when a figure is drawn
     import matplotlib
 
     matplotlib.use("Agg")
@@ -115,6 +120,7 @@ def plot_library(out: str) -> str:
 def plot_procedural(out: str, seeds: tuple[int, ...] = (1, 2, 3),
                     difficulties: tuple[float, ...] = (0.0, 0.33, 0.66, 1.0)) -> str:
     """Write one PNG of procedural circuits: a row per difficulty, a column per seed."""
+    # deferred: matplotlib only when a figure is drawn
     import matplotlib
 
     matplotlib.use("Agg")

@@ -45,6 +45,7 @@ def _check_knobs(length_m, corners, min_radius_m, width_m, surface) -> None:
 
 
 def _layout(rng: np.random.Generator, corners: int, relax: float, length_m: float, ds: float):
+    # deferred: scipy.interpolate only when a track is generated
     from scipy.interpolate import splev, splprep
 
     base = np.linspace(0.0, 2.0 * np.pi, corners, endpoint=False)

@@ -31,6 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from torcsrl.envs.tracks.generator import seed_difficulty
+
 __all__ = ["TRAIN_SEEDS", "HELDOUT_SEEDS", "GENERATORS", "ProceduralSpec", "heldout_names"]
 
 #: Default training seed range [lo, hi) of procedural tracks.
@@ -123,8 +125,6 @@ class ProceduralSpec:
         if self.difficulty is None:
             gens = (self.generator,) if isinstance(self.generator, str) else self.generator
             return [f"{GENERATORS[gens[k % len(gens)]]}{s}" for k, s in enumerate(self.track_seeds(env_seed))]
-        from torcsrl.envs.tracks.generator import seed_difficulty
-
         lo, hi = self.difficulty
         return [f"proc-{s}@{lo + (hi - lo) * seed_difficulty(s):.3f}" for s in self.track_seeds(env_seed)]
 

@@ -252,6 +252,7 @@ def _read_points(path: Path) -> np.ndarray:
 
 def points_to_track(raw: dict, path: Path, ds: float = SAMPLE_SPACING_M) -> Track:
     """Build a :class:`Track` from a sidecar YAML naming a centreline point file."""
+    # deferred: scipy.interpolate only when a track is fitted
     from scipy.interpolate import splev, splprep
 
     csv = Path(path).parent / str(raw["points"])
