@@ -134,8 +134,10 @@ def table(summary: list[dict], bundled: str = "set:heldout") -> str:
     return "\n".join(lines)
 
 
-def curve(run_dirs: list[str], tracks: list[str], surfaces: list[str], laps: int, workers: int, out: Path) -> Path:
-    """Held-out completion rate of every checkpoint of each run, against its training frames -> curve.png."""
+def curve(run_dirs: list[str], tracks: list[str], surfaces: list[str], laps: int, workers: int, out: Path,
+          screen: bool = False) -> Path:
+    """Completion rate of every checkpoint of each run, against its training frames -> curve.png: on the held-out
+    tracks, or with ``screen`` on the training tracks (the selection screen)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -155,7 +157,8 @@ def curve(run_dirs: list[str], tracks: list[str], surfaces: list[str], laps: int
         ax.plot(xs, ys, marker="o", label=Path(rd).name)
         print(f"{Path(rd).name}: " + ", ".join(f"{x}: {y:.2f}" for x, y in zip(xs, ys)))
     ax.set_xlabel("training frames")
-    ax.set_ylabel(f"held-out completion ({laps} lap{'s' if laps > 1 else ''})")
+    which = "training-track" if screen else "held-out"
+    ax.set_ylabel(f"{which} completion ({laps} lap{'s' if laps > 1 else ''})")
     ax.set_ylim(-0.02, 1.02)
     ax.grid(alpha=0.3)
     ax.legend()
@@ -229,7 +232,8 @@ def _main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     t0 = time.perf_counter()
     if args.curve:
-        path = curve([s for s in specs if Path(s).is_dir()], tracks, args.surfaces, args.curve_laps, args.workers, out)
+        path = curve([s for s in specs if Path(s).is_dir()], tracks, args.surfaces, args.curve_laps, args.workers, out,
+                     screen=args.screen)
         print(f"wrote {path}")
         return 0
     hz = {s: _hz(s) for s in specs}
