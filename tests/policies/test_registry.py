@@ -133,7 +133,7 @@ def test_colon_specs_load_as_before_and_named_ones_are_not_builtin_names():
     assert load_policy("sensor_sight:90").spec == "sensor-grip7.5-sight90"
     assert load_policy("side_guard:3:racer_safe").spec == "side_guard:3:racer_safe"
     assert RACER_SPECS[0] == "racer_safe[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>[:<abandon m>]]]]]]"
-    assert BUILTIN_POLICIES[-1] == "side_guard[:<clear m>[:<gain per m>[:<edge tp>]]]:<policy>" and len(BUILTIN_POLICIES) == 20
+    assert BUILTIN_POLICIES[-1] == "side_guard[:<clear m>[:<gain per m>[:<edge tp>]]]:<policy>" and len(BUILTIN_POLICIES) == 21
 
 
 def test_the_command_line_reads_named_specs(capsys):
@@ -143,3 +143,14 @@ def test_the_command_line_reads_named_specs(capsys):
     assert "'spec': 'racer_safe(gamma=1.27,decel=8)'" in capsys.readouterr().out
     assert main(["info", "racer_safe(gama=1)"]) == 2
     assert "torcsrl.policies: error: policy 'racer_safe(gama=1)': unknown key 'gama'" in capsys.readouterr().err
+
+
+def test_the_shipped_ppo_driver_loads_as_reference_rl():
+    """``reference_rl`` (and ``reference-rl``): the shipped PPO driver, one network on rangefinder + state, no rule."""
+    from torcsrl.policies import REFERENCE_PPO_POLICY, load_policy
+
+    assert REFERENCE_PPO_POLICY.is_file()
+    for spec in ("reference_rl", "reference-rl"):
+        pol = load_policy(spec)
+        assert tuple(pol.obs_keys) == ("rangefinder", "state")
+        assert pol.fingerprint == load_policy(str(REFERENCE_PPO_POLICY)).fingerprint

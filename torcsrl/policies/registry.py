@@ -80,7 +80,7 @@ from torcsrl.policies.scripted import ExpertPolicy, HeuristicPolicy, RandomPolic
 from torcsrl.policies.teachers import SensorDriver, SensorRacer
 
 __all__ = ["BUILTIN_POLICIES", "REFERENCE_POLICY", "REFERENCE_RL_POLICY", "REFERENCE_CAMERA_POLICY", "REFERENCE_RACER_POLICY",
-           "RACER_VALUES_FORM", "RACER_SPECS", "RACER_VALUES", "GUARD_VALUES", "SIGHT_VALUES", "NAMED_VALUES", "load_policy",
+           "REFERENCE_PPO_POLICY", "RACER_VALUES_FORM", "RACER_SPECS", "RACER_VALUES", "GUARD_VALUES", "SIGHT_VALUES", "NAMED_VALUES", "load_policy",
            "is_ensemble_spec", "racer_gains", "sight_teacher", "split_named_spec"]
 
 _ASSETS = Path(__file__).resolve().parent.parent / "assets"
@@ -89,6 +89,8 @@ _ASSETS = Path(__file__).resolve().parent.parent / "assets"
 REFERENCE_POLICY = _ASSETS / "reference_dagger.pt"
 #: The shipped RL (TD3) driver, ``reference-td3`` (``reference_td3.md``).
 REFERENCE_RL_POLICY = _ASSETS / "reference_td3.pt"
+#: The shipped PPO driver, ``reference_rl`` (``reference_rl.md``): RL from nothing, one network on rangefinder + state.
+REFERENCE_PPO_POLICY = _ASSETS / "reference_rl.pt"
 #: The shipped camera-only driver, ``reference_camera`` (``reference_camera.md``: command, selection, figures).
 REFERENCE_CAMERA_POLICY = _ASSETS / "reference_camera.pt"
 #: The shipped racing driver, ``reference_racer`` (``reference_racer.md``: command, selection, figures).
@@ -99,7 +101,7 @@ RACER_VALUES_FORM = "[:<gamma>[:<decel>[:<fight decel>[:<fight m>[:<clear m>[:<a
 RACER_SPECS = tuple(f"{base}{RACER_VALUES_FORM}" for base in ("racer_safe", "racer_clean", "racer_keep", "racer_yield"))
 #: Names of the built-in policies (anything else is a checkpoint path).
 BUILTIN_POLICIES = ("expert", "expert_centre", "heuristic", "sensor", "sensor_grip", "sensor_fast", "sensor_sight[:<metres>]",
-                    "sensor_fast_sight[:<metres>]", "racer", "racer_bold", *RACER_SPECS, "random", "reference", "reference-td3",
+                    "sensor_fast_sight[:<metres>]", "racer", "racer_bold", *RACER_SPECS, "random", "reference", "reference-td3", "reference_rl",
                     "reference_camera", "reference_racer", "side_guard[:<clear m>[:<gain per m>[:<edge tp>]]]:<policy>")
 
 
@@ -331,6 +333,8 @@ def load_policy(spec: str | Path | Policy) -> Policy:
         return _policy_file(REFERENCE_POLICY, name="reference")
     if s == "reference-td3":
         return _policy_file(REFERENCE_RL_POLICY, name="reference-td3")
+    if s in ("reference_rl", "reference-rl"):
+        return _policy_file(REFERENCE_PPO_POLICY, name="reference_rl")
     if s in ("reference_racer", "reference-racer"):
         if not REFERENCE_RACER_POLICY.is_file():
             raise PolicyError(f"the racing driver {REFERENCE_RACER_POLICY} is not shipped yet; pass a checkpoint path")
