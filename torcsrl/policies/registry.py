@@ -148,6 +148,18 @@ NAMED_VALUES: dict[str, tuple[str, ...]] = {**{n: tuple(RACER_VALUES) for n in _
 _NAMED = re.compile(r"(?P<name>[A-Za-z_][A-Za-z0-9_-]*)\((?P<args>[^()]*)\)")
 
 
+
+def spec_number(text: str, ok, not_a_number: str, out_of_range) -> float:
+    """``text`` as a finite float that ``ok`` accepts; else one :class:`PolicyError` line (``not_a_number``, or
+    ``out_of_range(value)``). The named and the colon spellings of a driver's values read numbers through it."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise PolicyError(not_a_number) from None
+    if not math.isfinite(v) or not ok(v):
+        raise PolicyError(out_of_range(v))
+    return v
+
 def split_named_spec(spec: str) -> tuple[str, dict[str, str], str] | None:
     """``name(key=value,...)[:<rest>]`` -> ``(name, {key: value text}, rest)`` (``rest`` empty when there is none);
     None for a spec of another form (a colon spec, a file). :class:`PolicyError` (one line) for a malformed list of
@@ -181,13 +193,8 @@ def _named_values(spec: str, values: Mapping[str, str], table: Mapping[str, tupl
         if key not in table:
             raise PolicyError(f"policy {spec!r}: unknown key {key!r}; allowed keys: {keys}")
         kw, what, ok, allowed = table[key]
-        try:
-            v = float(text)
-        except ValueError:
-            raise PolicyError(f"policy {spec!r}: {key} ({what}) must be a number {allowed}, got {text!r}; allowed keys: {keys}") from None
-        if not math.isfinite(v) or not ok(v):
-            raise PolicyError(f"policy {spec!r}: {key} ({what}) must be {allowed}, got {v:g}; allowed keys: {keys}")
-        out[kw] = v
+        out[kw] = spec_number(text, ok, f"policy {spec!r}: {key} ({what}) must be a number {allowed}, got {text!r}; allowed keys: {keys}",
+                              lambda v: f"policy {spec!r}: {key} ({what}) must be {allowed}, got {v:g}; allowed keys: {keys}")
     return out
 
 
@@ -215,13 +222,8 @@ def racer_gains(name: str) -> dict[str, Any] | None:
                 raise PolicyError(f"{name!r}: at most six values after '{base}': {form}")
             out = {**_RACERS[base][0], "grip_exponent": SensorRacer.SAFE_GRIP_EXPONENT}
             for text, (key, what, ok, allowed) in zip(parts, RACER_VALUES.values()):
-                try:
-                    v = float(text)
-                except ValueError:
-                    raise PolicyError(f"{name!r}: {what} must be a number {allowed}, got {text!r}: {form}") from None
-                if not math.isfinite(v) or not ok(v):
-                    raise PolicyError(f"{name!r}: {what} must be {allowed}, got {v:g}")
-                out[key] = v
+                out[key] = spec_number(text, ok, f"{name!r}: {what} must be a number {allowed}, got {text!r}: {form}",
+                                       lambda v: f"{name!r}: {what} must be {allowed}, got {v:g}")
             return out
     return None
 
