@@ -95,8 +95,85 @@ def test_race_env_sac_with_demonstrations_and_smoothness_and_ppo_evaluate_like_t
     (["algo=ppo", "demos.frames=100"], "demos: algo=ppo learns on-policy from its own rollouts and does not support demonstrations"),
     (["algo=ppo", "buffer.prioritized=true"], "buffer.prioritized=true: algo=ppo has no replay buffer and does not support prioritised"),
     (["algo=ppo", "algo.encoder.augment_shift=4"], "algo.encoder.augment_shift=4: algo=ppo does not augment its images"),
+    (["algo=ppo", "algo.lr_schedule=cosine"], "algo.lr_schedule: unknown schedule 'cosine'; allowed: constant, linear"),
+    (["algo=ppo", "algo.target_kl=0"], "algo.target_kl=0: the approximate KL at which a rollout's epochs stop; allowed: a number > 0"),
+    (["algo=td3", "algo.lr_schedule=linear"], "algo.lr_schedule=linear: the learning-rate schedule applies to algo=ppo only"),
+    (["algo=sac", "algo.target_kl=0.02"], "algo.target_kl=0.02: the KL early stop of a rollout's epochs applies to algo=ppo only"),
 ])
 def test_options_that_do_not_apply_are_refused_in_one_line(overrides, line):
     with pytest.raises(ConfigError) as err:
         validate(cfg_for(*overrides))
     assert str(err.value).count("\n") == 0 and line in str(err.value)
+
+
+def test_ppo_linear_learning_rate_kl_early_stop_and_smoothness(tmp_path):
+    """``algo.lr_schedule=linear`` takes the rates from actor_lr/critic_lr towards 0 over the run, set before each
+    rollout's update; ``algo.target_kl`` stops a rollout's epochs early (logged as train/epochs, fewer than asked); the
+    CAPS terms (``algo.smooth``) act on PPO's mean action and are logged; a run stopped at a checkpoint and resumed
+    follows the same schedule exactly."""
+    ov = ["algo=ppo", *PPO, "env.num_cars=2", "algo.epochs=8", "algo.lr_schedule=linear", "algo.target_kl=0.0005",
+          "algo.smooth.temporal=1.0", "algo.smooth.spatial=0.5",
+          "checkpoint.every_frames=200", "logger.every_frames=100", "eval.every_episodes=1000"]
+    ref = train(cfg_for(*ov, "total_frames=400", f"run_dir={tmp_path / 'ref'}"))
+    epochs = [v for _, v in read_csv_metric(tmp_path / "ref", "train/epochs")]
+    assert epochs and min(epochs) < 8  # a tiny target KL stops the epochs early
+    for term in ("loss/smooth_temporal", "loss/smooth_spatial"):
+        rows = read_csv_metric(tmp_path / "ref", term)
+        assert rows and all(math.isfinite(v) and v >= 0 for _, v in rows), term
+    ck = torch.load(ref["checkpoint"], weights_only=False)
+    lrs = [g["lr"] for g in ck["optim"]["actor"]["param_groups"]]
+    assert lrs == [pytest.approx(3e-4 * (1 - 300 / 400))]  # the last rollout (frames 300..400) ran at 1/4 of the rate
+    # the schedule runs over total_frames, so the exact-resume check holds it constant (a run cut by a smaller
+    # total_frames would anneal over that one)
+    ov = [*ov, "algo.lr_schedule=constant"]
+    ref = train(cfg_for(*ov, "total_frames=400", f"run_dir={tmp_path / 'ref2'}"))
+    train(cfg_for(*ov, "total_frames=200", f"run_dir={tmp_path / 'cut'}"))
+    res = train(cfg_for(*ov, "total_frames=400", f"run_dir={tmp_path / 'cut'}", "checkpoint.resume=latest"))
+    for k in ("frames", "updates", "loss/objective", "loss/critic", "loss/smooth_temporal", "loss/smooth_spatial"):
+        assert res[k] == ref[k], k
+
+
+def test_set_learning_rates_schedules():
+    from torcsrl.training.onpolicy import set_learning_rates
+
+    opt = {"actor": torch.optim.Adam([torch.zeros(1, requires_grad=True)], lr=1.0)}
+    set_learning_rates(opt, {"actor": 2e-4}, "constant", 50, 100)
+    assert opt["actor"].param_groups[0]["lr"] == 1.0  # constant: the optimiser keeps its rate
+    set_learning_rates(opt, {"actor": 2e-4}, "linear", 50, 100)
+    assert opt["actor"].param_groups[0]["lr"] == pytest.approx(1e-4)
+    set_learning_rates(opt, {"actor": 2e-4}, "linear", 150, 100)
+    assert opt["actor"].param_groups[0]["lr"] == 0.0  # past the budget (a resumed run with more frames): never negative
+    with pytest.raises(ValueError, match="allowed: constant, linear"):
+        set_learning_rates(opt, {"actor": 2e-4}, "cosine", 0, 100)
+
+
+def test_ppo_caps_temporal_term_pulls_consecutive_mean_actions_together():
+    """A few steps of the temporal CAPS term alone bring mu(s) and mu(s') closer (the gradient reaches the actor)."""
+    from torcsrl.nets import TanhGaussianActor
+    from torcsrl import agents
+    from torcsrl.objectives.ppo import PPOBatch
+    from torcsrl.pipeline import actor_obs_keys, make_train_env
+
+    torch.manual_seed(0)
+    cfg = cfg_for("algo=ppo", *PPO)
+    env = make_train_env(cfg)
+    keys = actor_obs_keys(cfg)
+    agent = agents.get("ppo")
+    actor, critic = agent.make_actor(cfg.algo, env, keys), agent.make_critic(cfg.algo, env, keys)
+    loss = agent.make_loss(cfg.algo, actor, critic, env, keys)
+    assert isinstance(actor, TanhGaussianActor)
+    obs = [torch.randn(64, *env.observation_spec[k].shape) for k in keys]
+    nxt = [torch.randn(64, *env.observation_spec[k].shape) for k in keys]
+    z = torch.zeros(64)
+    batch = PPOBatch(actor.encoder.prepare(*obs), critic.encoder.prepare(*obs), torch.zeros(64, 2), z, z, z[:, None], z[:, None],
+                     actor.encoder.prepare(*nxt))
+    opt = torch.optim.Adam(actor.parameters(), lr=1e-3)
+    first = None
+    for _ in range(50):
+        total, out = loss.smoothness(batch, temporal=1.0)
+        first = float(out["loss/smooth_temporal"]) if first is None else first
+        opt.zero_grad()
+        total.backward()
+        opt.step()
+    assert float(out["loss/smooth_temporal"]) < 0.5 * first
+    env.close()

@@ -100,6 +100,8 @@ def make_loss(cfg: Any, actor, critic, env: EnvBase, obs_keys: list[str], critic
                        entropy_coeff=float(cfg.entropy_coef), critic_coeff=float(cfg.value_coef), loss_critic_type="l2",
                        normalize_advantage=True)
     loss.make_value_estimator(ValueEstimators.GAE, gamma=float(cfg.gamma), lmbda=float(cfg.gae_lambda))
+    sm = getattr(cfg, "smooth", None)
+    loss.with_next = sm is not None and float(sm.temporal) > 0  # the CAPS temporal term reads the next observations
     return loss
 
 
@@ -134,6 +136,11 @@ def update(cfg: Any, loss: ClipPPOLoss, optim, updater, batch: PPOBatch | Tensor
     with _build.precision_context(cfg.precision, loss.actor.a_mid.device):
         lc, _ = loss.value_loss(batch)
         la, meta = loss.actor_loss(batch) if actor else (None, None)
+        sm = getattr(cfg, "smooth", None)
+        smooth_out: dict = {}
+        if actor and sm is not None and (float(sm.temporal) > 0 or float(sm.spatial) > 0):  # CAPS on the mean action
+            ls, smooth_out = loss.smoothness(batch, float(sm.temporal), float(sm.spatial), float(sm.spatial_sigma))
+            la = la + ls
     total = lc + la if actor else lc
     opts = [optim["actor"], optim["critic"]] if actor else [optim["critic"]]
     for o in opts:
@@ -146,5 +153,5 @@ def update(cfg: Any, loss: ClipPPOLoss, optim, updater, batch: PPOBatch | Tensor
     out = {"loss/critic": lc.detach()}
     if actor:
         out.update({"loss/objective": meta["loss_objective"], "loss/entropy": meta["entropy"], "loss/kl_approx": meta["kl_approx"],
-                    "loss/clip_fraction": meta["clip_fraction"]})
+                    "loss/clip_fraction": meta["clip_fraction"], **smooth_out})
     return out

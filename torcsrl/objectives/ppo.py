@@ -168,6 +168,8 @@ class PPOBatch:
             ``[B]`` (:meth:`SquashedGaussian.preimage`).
         log_prob: ``log pi_old(a|s)`` of the behaviour policy ``[B]``.
         advantage: GAE advantages ``[B, 1]``; value_target: the value network's targets ``[B, 1]``.
+        next_actor_in: the actor's inputs of the next observations, prepared alike (only where the CAPS temporal term
+            reads them: :meth:`ClipPPOLoss.smoothness`; else empty).
     """
 
     actor_in: tuple[torch.Tensor, ...]
@@ -177,6 +179,7 @@ class PPOBatch:
     log_prob: torch.Tensor
     advantage: torch.Tensor
     value_target: torch.Tensor
+    next_actor_in: tuple[torch.Tensor, ...] = ()
 
     def __len__(self) -> int:
         return self.log_prob.shape[0]
@@ -191,7 +194,8 @@ class PPOBatch:
             return out
 
         return PPOBatch(tuple(take(t) for t in self.actor_in), tuple(take(t) for t in self.critic_in), self.preimage[idx],
-                        self.log_det[idx], self.log_prob[idx], self.advantage[idx], self.value_target[idx])
+                        self.log_det[idx], self.log_prob[idx], self.advantage[idx], self.value_target[idx],
+                        tuple(take(t) for t in self.next_actor_in))
 
 
 class ClipPPOLoss(_TorchRLClipPPOLoss, metaclass=DirectLossMeta):
@@ -227,6 +231,7 @@ class ClipPPOLoss(_TorchRLClipPPOLoss, metaclass=DirectLossMeta):
         self.obs_keys = list(obs_keys)
         low, high = action_low.to(actor_network.a_mid.device), action_high.to(actor_network.a_mid.device)
         self.squash = SquashedGaussian(low.float(), high.float())
+        self.with_next = False  # True: batch() also prepares the next observations (the CAPS temporal term reads them)
 
     # the rollout as tensors ------------------------------------------------------------
     @torch.no_grad()
@@ -240,9 +245,35 @@ class ClipPPOLoss(_TorchRLClipPPOLoss, metaclass=DirectLossMeta):
         keys = self.tensor_keys
         obs = [flat.get(k).to(dev) for k in self.obs_keys]
         x, log_det = self.squash.preimage(flat.get(keys.action).to(dev))
+        nxt = self.actor.encoder.prepare(*[flat.get(("next", k)).to(dev) for k in self.obs_keys]) if self.with_next else ()
         return PPOBatch(self.actor.encoder.prepare(*obs), self.critic.encoder.prepare(*obs), x, log_det,
                         flat.get(keys.sample_log_prob).to(dev).reshape(-1), flat.get(keys.advantage).to(dev),
-                        flat.get(keys.value_target).to(dev))
+                        flat.get(keys.value_target).to(dev), tuple(nxt))
+
+    def smoothness(self, batch: PPOBatch, temporal: float = 0.0, spatial: float = 0.0, sigma: float = 0.02) -> tuple[torch.Tensor, dict]:
+        """The CAPS terms (Mysore et al. 2021) on the policy's deterministic action ``mu(s) = t(loc(s))`` (what
+        evaluation drives), as the off-policy actors have them (:func:`torcsrl.agents._build.actor_regularisers`):
+        ``temporal * |mu(s) - mu(s')|^2`` (``s'`` the next observation: needs ``with_next``) and
+        ``spatial * |mu(s) - mu(s + N(0, sigma^2))|^2`` on the prepared (standardised) vector inputs, images unperturbed.
+        Returns (the weighted sum, ``loss/smooth_temporal`` / ``loss/smooth_spatial`` detached); gradients reach the actor."""
+        def mean_action(inputs: tuple[torch.Tensor, ...]) -> torch.Tensor:
+            return self.squash.mode(self.actor.dist_params(self.actor.encoder.features(*inputs))[0])
+
+        mu = mean_action(batch.actor_in)
+        total = mu.new_zeros(())
+        out: dict[str, torch.Tensor] = {}
+        if temporal > 0:
+            if not batch.next_actor_in:
+                raise ValueError("the CAPS temporal term needs the next observations in the batch: set ClipPPOLoss.with_next = True")
+            lt = (mean_action(batch.next_actor_in) - mu).pow(2).sum(-1).mean()
+            total = total + temporal * lt
+            out["loss/smooth_temporal"] = lt.detach()
+        if spatial > 0:
+            noisy = tuple(x + sigma * torch.randn_like(x) if x.is_floating_point() and x.dim() <= 2 else x for x in batch.actor_in)
+            ls = (mean_action(noisy) - mu).pow(2).sum(-1).mean()
+            total = total + spatial * ls
+            out["loss/smooth_spatial"] = ls.detach()
+        return total, out
 
     def _entropy_weighted(self) -> bool:
         """``entropy_coeff != 0``, read from the buffer again only when it changes (it may be scheduled)."""

@@ -242,6 +242,7 @@ def _against(ref: Any, val: Any, path: str, out: list[str], skip: Sequence[str] 
 # ---------------------------------------------------------------------------------------------------------------
 #: Learning-rate schedules of one imitation fit (algo.bc_lr_schedule; torcsrl/training/imitation.py).
 BC_LR_SCHEDULES = ("constant", "cosine")
+LR_SCHEDULES = ("constant", "linear")  # algo.lr_schedule (PPO)
 
 
 def _shift_pads(algo: Any) -> tuple[int, int]:
@@ -264,6 +265,11 @@ def _check_algo(algo: Any, out: list[str]) -> None:
         out.append(f"algo.precision: unknown precision {algo['precision']!r}; allowed: {', '.join(PRECISIONS)}")
     if isinstance(algo, Mapping) and algo.get("bc_lr_schedule", "constant") not in BC_LR_SCHEDULES:
         out.append(f"algo.bc_lr_schedule: unknown schedule {algo['bc_lr_schedule']!r}; allowed: {', '.join(BC_LR_SCHEDULES)}")
+    if isinstance(algo, Mapping) and algo.get("lr_schedule", "constant") not in LR_SCHEDULES:
+        out.append(f"algo.lr_schedule: unknown schedule {algo['lr_schedule']!r}; allowed: {', '.join(LR_SCHEDULES)}")
+    kl = algo.get("target_kl") if isinstance(algo, Mapping) else None
+    if kl is not None and (isinstance(kl, bool) or not is_number(kl) or kl <= 0):
+        out.append(f"algo.target_kl={kl!r}: the approximate KL at which a rollout's epochs stop; allowed: a number > 0 [nats], or null")
 
 
 def _check_device(device: Any, out: list[str]) -> None:
@@ -351,6 +357,12 @@ def _check_algo_fit(c: Mapping, out: list[str]) -> None:
     hid = algo.get("grip_hidden", [64])
     if not (isinstance(hid, Sequence) and not isinstance(hid, str) and all(is_number(h) and float(h).is_integer() and h >= 1 for h in hid)):
         out.append(f"algo.grip_hidden={hid!r}: expected a list of hidden layer sizes >= 1, e.g. [64] (or [] for a linear head)")
+    if name != "ppo" and name in ALGOS:
+        if algo.get("lr_schedule", "constant") != "constant":
+            out.append(f"algo.lr_schedule={algo['lr_schedule']}: the learning-rate schedule applies to algo=ppo only (algo={name}: "
+                       "bc_lr_schedule for bc/dagger); allowed: constant")
+        if algo.get("target_kl") is not None:
+            out.append(f"algo.target_kl={algo['target_kl']}: the KL early stop of a rollout's epochs applies to algo=ppo only; allowed: null")
     if name not in ("sac", "ppo"):
         return
     why = f"algo={name} explores by sampling its own policy"

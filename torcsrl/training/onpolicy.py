@@ -65,7 +65,7 @@ from torcsrl.utils.logging import Progress, log_metrics, make_loggers
 from torcsrl.utils.seeding import rng_state, seed_everything
 from torcsrl.utils.threads import configure_threads, process_cpu_s
 
-__all__ = ["train", "WorkerRollouts", "make_rollout_collector", "worker_config", "save", "resume"]
+__all__ = ["train", "update", "set_learning_rates", "WorkerRollouts", "make_rollout_collector", "worker_config", "save", "resume"]
 
 
 def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
@@ -100,6 +100,8 @@ def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
 
     hot = plain(cfg.algo)
     epochs, minibatch = int(cfg.algo.epochs), int(cfg.algo.batch_size)
+    target_kl = None if cfg.algo.get("target_kl") is None else float(cfg.algo.target_kl)
+    base_lrs = {k: float(cfg.algo[f"{k}_lr"]) for k in optim}  # actor_lr, critic_lr: what lr_schedule scales
     log_every, eval_every, ckpt_every = int(cfg.logger.every_frames), int(cfg.eval.every_episodes), int(cfg.checkpoint.every_frames) or total
     encoders = [m.encoder for m in (actor, critic) if m.encoder.norm is not None]
     last: dict[str, Any] = {}
@@ -122,7 +124,8 @@ def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
                 data = data.to(device, non_blocking=True)
 
             # update: epochs of shuffled minibatches of the rollout, then the observation statistics and the workers' policies
-            last = update(agent, hot, loss, optim, data, epochs, minibatch, counters) or last
+            set_learning_rates(optim, base_lrs, str(cfg.algo.get("lr_schedule", "constant")), counters.frames - data.numel(), total)
+            last = update(agent, hot, loss, optim, data, epochs, minibatch, counters, target_kl) or last
             for enc in encoders:
                 enc.update_norm(*[data.get(k) for k in obs_keys])
             collector.update_policy_weights_()
@@ -156,21 +159,43 @@ def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     return result
 
 
-def update(agent, hot, loss, optim: dict, data: TensorDictBase, epochs: int, minibatch: int, counters: Counters) -> dict:
+def update(agent, hot, loss, optim: dict, data: TensorDictBase, epochs: int, minibatch: int, counters: Counters,
+           target_kl: float | None = None) -> dict:
     """PPO's update on one rollout: GAE advantages and value targets with the networks that collected it, then ``epochs``
     passes of shuffled minibatches of ``minibatch`` rows (the rollout as tensors once, shuffled once an epoch, sliced:
-    views). Returns the last minibatch's metrics (empty when the rollout held no minibatch)."""
+    views). With ``target_kl`` the epochs stop at the first minibatch whose approximate KL to the collecting policy
+    exceeds ``1.5 * target_kl`` (SB3's rule; that minibatch's step is taken). Returns the last minibatch's metrics (with
+    ``target_kl``: and ``train/epochs``, the epochs begun); empty when the rollout held no minibatch."""
     last: dict = {}
     with torch.no_grad():
         loss.value_estimator(data)
     batch = loss.batch(data)
     n = len(batch)
-    for _ in range(epochs):
+    for epoch in range(epochs):
         shuffled = batch[torch.randperm(n)]
         for start in range(0, n, minibatch):
             last = agent.update(hot, loss, optim, None, shuffled[start:start + minibatch], counters.updates)
             counters.updates += 1
+            if target_kl is not None:
+                last["train/epochs"] = torch.tensor(float(epoch + 1))
+                if float(last["loss/kl_approx"]) > 1.5 * target_kl:
+                    return last
     return last
+
+
+def set_learning_rates(optim: dict, base_lrs: dict[str, float], schedule: str, frames: int, total: int) -> None:
+    """``algo.lr_schedule`` before a rollout's update, ``frames`` the steps collected before that rollout: ``constant``
+    leaves the optimisers alone; ``linear`` sets each to its base rate x ``(1 - frames / total)`` (CleanRL's
+    ``anneal_lr``: the first update at the full rate, the rate reaching 0 at ``total_frames``). A function of the frame
+    count, so a resumed run continues the same schedule."""
+    if schedule == "constant":
+        return
+    if schedule != "linear":
+        raise ValueError(f"algo.lr_schedule={schedule!r}: unknown schedule; allowed: constant, linear")
+    frac = max(0.0, 1.0 - frames / max(1, total))
+    for name, opt in optim.items():
+        for group in opt.param_groups:
+            group["lr"] = base_lrs[name] * frac
 
 
 def worker_config(cfg: DictConfig, workers: int) -> DictConfig:
