@@ -35,7 +35,7 @@ class SideGuard(Policy):
     ``side_guard:racer_safe:1.27:8:9`` or ``side_guard:3:0.05:a.pt+b.pt@medoid``, or by name (any of :attr:`DEFAULTS`),
     ``side_guard(clear_m=3,reach_m=6):racer_safe``; an ensemble file exported with a
     guard (``python -m torcsrl.policies ensemble ... --side-guard <clear m>[:<gain>[:<edge>]]``) loads as one: the
-    shipped ``reference_racer`` (the tenth version: its four students' medoid behind the default guard)."""
+    shipped ``reference_racer`` (its four students' medoid behind the default guard)."""
 
     PREFIX = "side_guard"
     #: The guard's settings unless a spec or file names them: lateral room kept [m], steering per metre short of it

@@ -71,7 +71,7 @@ class SensorDriver(Policy):
     #: through the farthest free point (``k_corner``), braking towards 8 m/s rather than to a stop at the wall ahead
     #: (``v_corner_ms``), and a 3x stiffer speed loop (``k_v``). Screened on training tracks only (set:train +
     #: gen-10001..4, asphalt, 2 laps at 10 Hz, 2026-11-27): 9/9 laps at a median 1.076x the expert's lap (sensor_grip:
-    #: 9/9 at 1.165x) — faster than experts at 85 % pace (1.176x), which a racer must beat (issue #20).
+    #: 9/9 at 1.165x) — faster than experts at 85 % pace (1.176x), the pace a racer must beat.
     FAST = {"decel_per_mu": 9.0, "v_corner_ms": 8.0, "k_corner": 0.7, "k_v": 0.3}
     #: The fast camera teacher (``sensor_fast_sight``): the fast gains limited to the camera's sight
     #: (:data:`CAMERA_SIGHT_M`) with a gentler corner speed (``k_corner`` 0.6: at 0.7 it left hairpins on dirt and

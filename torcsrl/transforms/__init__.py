@@ -1,7 +1,7 @@
 """Sensor degradations as TorchRL transforms, at graded severities 1..5.
 
 The catalogue (what each effect does, its parameters per severity) is
-``/work/shared/DEGRADATIONS.md``; every class docstring repeats its line of it.
+``docs/guides/degradation-catalogue.md``; every class docstring repeats its line of it.
 
 In code::
 

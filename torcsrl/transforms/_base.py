@@ -4,7 +4,7 @@ A :class:`Degradation` is a TorchRL :class:`~torchrl.envs.Transform` that corrup
 observation keys. Subclasses declare three things and write one method:
 
 * ``ladder``: ``{parameter: (s1, s2, s3, s4, s5)}``, the physical parameters per severity
-  (the tables of ``/work/shared/DEGRADATIONS.md``); ``kinds`` says how each is validated.
+  (the tables of ``docs/guides/degradation-catalogue.md``); ``kinds`` says how each is validated.
 * ``options``: other knobs with their defaults (``max_range``, ``airlight``, ...).
 * ``_draw_faults``: the per-env *episode* draws (bias, dead beams, mud, ...), if any.
 * ``_degrade(x, key, st, reset)``: one step for one tensor.

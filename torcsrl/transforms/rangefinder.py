@@ -6,7 +6,7 @@ Every transform here works on ``x`` [*B, ..., D] (D beams, any D) and
 * keeps readings in [0, max_range]; "no return" is the sentinel ``max_range``
   (what the sensor reports when nothing is within range).
 
-Severity ladders are the catalogue's (``/work/shared/DEGRADATIONS.md``). Beam angles, when a
+Severity ladders are the catalogue's (``docs/guides/degradation-catalogue.md``). Beam angles, when a
 transform needs them (fov_loss, spray), default to D beams evenly spread over ±90° (TORCS's
 default layout); pass ``beam_angles=[...]`` (degrees, left < 0) for another layout.
 """

@@ -1,4 +1,4 @@
-"""Reliability helpers shared by the entry points (issue 16): one-line answers to faults.
+"""Reliability helpers shared by the entry points: one-line answers to faults.
 
 - :func:`writable_folder` / :class:`OutputError`: a folder that cannot be created or written (a path
   through a file, no permission, a full disk) fails before any work, in one line naming it.
