@@ -177,3 +177,15 @@ def test_ppo_caps_temporal_term_pulls_consecutive_mean_actions_together():
         opt.step()
     assert float(out["loss/smooth_temporal"]) < 0.5 * first
     env.close()
+
+
+def test_generalise_rl_preset_trains_on_the_race_env(tmp_path):
+    """``experiment=generalise_rl`` with a tiny budget: its levers (linear rates, KL stop, CAPS) run together on the
+    procedural pool with surfaces drawn per episode, validation per training track, and a checkpoint is written."""
+    cfg = cfg_for("experiment=generalise_rl", f"run_dir={tmp_path}", "total_frames=200", "env.num_cars=2", "algo.rollout_steps=50",
+                  "algo.batch_size=32", "env.procedural.pool=2", "env.max_steps=40", "eval.env.track=oval", "eval.every_episodes=1", "eval.max_steps=30",
+                  "logger.every_frames=100", "checkpoint.every_frames=100", env="race")
+    assert cfg.algo.lr_schedule == "linear" and cfg.algo.target_kl == 0.02 and cfg.algo.smooth.temporal == 0.5
+    r = train(cfg)
+    assert r["frames"] >= 200 and r["updates"] > 0 and Path(r["checkpoint"]).is_file()
+    assert read_csv_metric(tmp_path, "loss/smooth_temporal") and read_csv_metric(tmp_path, "eval/oval/laps")
