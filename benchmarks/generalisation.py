@@ -171,12 +171,15 @@ def curve(run_dirs: list[str], tracks: list[str], surfaces: list[str], laps: int
 
 def main(argv: list[str] | None = None) -> int:
     """The command line; SIGTERM or Ctrl-C stops it with one line and exit status 128 + the signal, its pool shut."""
+    from torcsrl.policies import PolicyError
     from torcsrl.utils.faults import cli_error, graceful_termination
 
     try:
         with graceful_termination():
             return _main(argv)
     except KeyboardInterrupt as err:  # Interrupted (SIGTERM) is one
+        return cli_error("generalisation", err, stopped="no table written")
+    except PolicyError as err:  # a --policy that is neither a file nor a built-in driver: one line, no traceback
         return cli_error("generalisation", err, stopped="no table written")
 
 
