@@ -1,4 +1,4 @@
-"""Report cells on Ray (``ray=...``, the ``[ray]`` extra): the same robustness metrics as the local path for the same
+"""Report cells on Ray (``ray=...``, the ``[distributed]`` extra): the same robustness metrics as the local path for the same
 seeds, on Ray workers; an address that cannot be reached, ``auto`` without a cluster and Ray missing each fail in
 one line within seconds, before any folder or episode; Ctrl-C cancels what is left and keeps finished cells."""
 
@@ -78,7 +78,7 @@ def test_an_unreachable_address_fails_fast_with_one_line(tmp_path, capsys, monke
 
 def test_ray_not_installed_is_one_line_naming_the_extra(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray -> ImportError
-    with pytest.raises(EvalError, match=r"needs the ray package, which is not installed: pip install 'torcsrl\[ray\]'"):
+    with pytest.raises(EvalError, match=r"needs the ray package, which is not installed: pip install 'torcsrl\[distributed\]'"):
         run_report(tiny(ray="local"), tmp_path / "out", verbose=False)
     assert not (tmp_path / "out").exists()
 

@@ -91,7 +91,7 @@ def _has(module: str) -> bool:
 
 
 @pytest.mark.skipif(not (_has("hydra_plugins.hydra_ray_launcher") and _has("ray")),
-                    reason="hydra-ray-launcher / ray are not installed (pip install hydra-ray-launcher)")
+                    reason="hydra-ray-launcher / ray are not installed (the [distributed] extra)")
 def test_ray_launcher(tmp_path):
     multirun(tmp_path, "hydra/launcher=ray_local", "hydra.launcher.ray.init.num_cpus=2", "algo=ddpg,td3", "seed=0", timeout=600)
     dirs = job_dirs(tmp_path)

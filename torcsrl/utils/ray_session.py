@@ -35,7 +35,7 @@ __all__ = ["ADDRESS_HELP", "RayError", "RayInfo", "check_address", "import_ray",
 
 #: What an address may be (for one-line errors).
 ADDRESS_HELP = "null (no Ray), local (a Ray instance on this machine), auto (the running cluster), host:port or ray://host:port"
-INSTALL_HINT = "pip install 'torcsrl[ray]'"
+INSTALL_HINT = "pip install 'torcsrl[distributed]'"
 
 
 class RayError(ValueError):
@@ -83,7 +83,7 @@ def check_address(address: Any) -> str | None:
 def import_ray():
     """The ``ray`` module, or :class:`RayError` saying how to install it."""
     try:
-        import ray  # deferred: optional (the [ray] extra)
+        import ray  # deferred: optional (the [distributed] extra)
     except ImportError:
         raise RayError(f"running on Ray needs the ray package, which is not installed: {INSTALL_HINT}") from None
     return ray
