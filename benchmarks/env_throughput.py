@@ -6,19 +6,19 @@ The first table is the env against raw pybullet in the same run: ``gym.make("tor
 arguments, uniform random actions, reset when an episode ends, beside pybullet's racecar URDF (pybullet_data, 50 Hz
 x 5 substeps of 240 Hz) with 19 ray tests of 200 m per step (``rayTestBatch``, the TORCS rangefinder's fan), in
 interleaved rounds (best of each). The ratio env / raw is printed step-only (reset time excluded) and with resets,
-with the mean reset cost; goal (issue 56): >= 2.0x. ``--raw-only`` prints just that table.
+with the mean reset cost; goal: >= 2.0x. ``--raw-only`` prints just that table.
 
 One process, one thread, everything measured in the same run (ratios are what to compare; the
 machine is shared and absolute figures move). Observations: rangefinder + state. Peers are
 measured only when installed (``pip install -e ".[bench]"``): gymnasium CarRacing-v3 (needs box2d)
 and highway-env racetrack-v0 with its lidar observation.
 
-Goals (issue 4): >= 2,000 steps/s for one car; >= 5,000 car-steps/s batched at N = 32; the env's
+Goals: >= 2,000 steps/s for one car; >= 5,000 car-steps/s batched at N = 32; the env's
 overhead (env step - raw physics step) <= 1.5x the raw physics step of its own car. Both the
 overhead ratio and the plain env/physics ratio are printed. The raw physics of 32 cars is measured
 with the cars overlapping on one spot, as the env's cars do on a shared grid.
 
-``--race`` (issue 20): a 4-car race env (1 learner + 3 scripted experts at 85 % pace, chassis colliding, the
+``--race``: a 4-car race env (1 learner + 3 scripted experts at 85 % pace, chassis colliding, the
 opponents sensor on) beside the one-car env, in car-steps/s (every simulated car counts); goal >= 0.5x. Also a
 batched race (N = 8 learners, each with its 3 opponents).
 """

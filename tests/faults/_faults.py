@@ -1,4 +1,4 @@
-"""Shared helpers of the fault-injection suite (issue 16): composed configs, CLI runs, process checks.
+"""Shared helpers of the fault-injection suite: composed configs, CLI runs, process checks.
 
 Every test here injects one fault a careful user or an operator meets (a signal, a corrupt file, a
 nonsense value, a folder that cannot be written) and checks the framework's answer: one line saying
