@@ -192,3 +192,17 @@ def test_configuration_reference_renders():
             assert f"`conf/{rel}`" in page, rel
         else:
             assert f"`{rel.parent}={path.stem}`" in page, rel
+
+
+def test_configuration_reference_keeps_brackets_literal():
+    """A comment such as ``[algo=td3] [seed=1]`` renders as text: unescaped, Markdown reads ``[a] [b]`` as a
+    reference link and the strict site build (mkdocs-autorefs) fails on the missing target."""
+    sys.path.insert(0, str(ROOT / "docs" / "hooks"))
+    try:
+        import config_reference
+    finally:
+        sys.path.remove(str(ROOT / "docs" / "hooks"))
+    page = config_reference.render()
+    reference = re.compile(r"(?<!\\)\[[^\]\n]*(?<!\\)\] ?(?<!\\)\[")
+    assert not reference.search(page), reference.search(page).group(0)
+    assert r"\[seed=1\]" in page

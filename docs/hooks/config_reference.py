@@ -44,8 +44,9 @@ def _split_comment(text: str) -> tuple[str, str]:
 
 
 def _md(text: str) -> str:
-    """Comment text made safe for a Markdown table cell."""
+    """Comment text made safe for a Markdown table cell: ``[seed=1]`` stays literal text, not a reference link."""
     text = text.replace("\\", "\\\\").replace("|", "\\|").replace("*", "\\*")
+    text = text.replace("[", "\\[").replace("]", "\\]")
     return text.replace("<", "&lt;").replace(">", "&gt;")
 
 
