@@ -211,8 +211,14 @@ def test_experiment_presets_compose_validate_and_only_override():
         smoke = compose_cfg(f"experiment={exp}", "env=toy", "env.track=oval", "debug=smoke", "++eval.env.track=oval")
         assert smoke.total_frames == 600, exp
     s = compose_cfg("experiment=summers2022")
-    assert s.algo.name == "td3" and s.env.reward == "summers_final" and list(s.env.track) == ["fast_straights", "rallycross"]
-    assert "rallycross" not in s.eval.env.track and set(s.eval.env.track) < set(tracks.track_sets()["heldout"])
+    assert s.algo.name == "td3" and s.env.reward == "summers_final" and list(s.env.track) == ["fast_straights", "hairpins"]
+    assert list(s.env.surface) == ["asphalt", "dirt"]
+    heldout = set(tracks.track_sets()["heldout"])
+    for exp in ("summers2022", "summers_road", "summers_dirt"):  # neither trained nor validated on a held-out track
+        c = compose_cfg(f"experiment={exp}")
+        trained = [c.env.track] if isinstance(c.env.track, str) else list(c.env.track)
+        validated = [c.eval.env.track] if isinstance(c.eval.env.track, str) else list(c.eval.env.track)
+        assert not heldout & set(trained + validated), exp
     a = compose_cfg("experiment=andersson")
     assert a.algo.name == "ddpg" and list(a.algo.actor_hidden) == [300, 600] and a.env.track == "oval"
     assert list(a.algo.exploration.theta) == [0.6, 1.0] and list(a.algo.exploration.mu) == [0.0, 0.5]

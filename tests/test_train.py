@@ -367,3 +367,16 @@ def test_buffer_save_load_shares_between_experiments(tmp_path):
 def test_unknown_env_name_is_one_clear_line():
     with pytest.raises(ValueError, match="unknown env.name 'carla'; known: race, toy, gym"):
         build_base_env("carla", {})
+
+
+@pytest.mark.parametrize("exp,algo", [("summers_dirt", "d4pg"), ("summers2022", "ddpg")])
+def test_summers_presets_train_on_the_race_env_with_a_tiny_budget(tmp_path, exp, algo):
+    """The seeds' presets on their own tracks and surfaces (hairpins on dirt; fast_straights/hairpins on asphalt or
+    dirt), shrunk: random frames first, then updates, validation on the training track, a checkpoint."""
+    cfg = compose_config(f"experiment={exp}", f"algo={algo}", "debug=smoke", f"run_dir={tmp_path}", "total_frames=300",
+                         "collector.init_random_frames=100", "learner.warmup_frames=100", "eval.every_episodes=1",
+                         "eval.max_steps=30", "env.max_steps=100", "checkpoint.every_frames=300")
+    assert cfg.env.name == "race" and cfg.env.reward == "summers_final"
+    r = train(cfg)
+    assert r["frames"] >= 300 and r["updates"] > 0 and Path(r["checkpoint"]).is_file()
+    assert math.isfinite(r["loss/qvalue"]) and read_csv_metric(tmp_path, "eval/reward")
