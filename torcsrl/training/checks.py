@@ -28,6 +28,7 @@ from torcsrl.nets import shift_pad
 from torcsrl.pipeline import is_number, unknown_key
 from torcsrl.policies import load_policy
 from torcsrl.utils.hydra_app import CONF_DIR
+from torcsrl.utils.ray_session import RayError, check_address
 from torcsrl.utils.threads import resolve_threads
 
 __all__ = ["ConfigError", "resolve", "check", "section", "raise_problems"]
@@ -312,6 +313,19 @@ def _check_algo_fit(c: Mapping, out: list[str]) -> None:
     elif lag == 1 and not (is_number(col.get("num_workers")) and col["num_workers"] >= 1):
         out.append(f"collector.policy_lag=1 needs worker processes to collect while this one updates; allowed: collector.num_workers>=1 "
                    f"(got {col.get('num_workers')}), or policy_lag=0")
+    address = col.get("ray")
+    if address is not None:
+        try:
+            check_address(address)
+        except RayError as err:
+            out.append(f"collector.{err}")
+        else:
+            if not (is_number(col.get("num_workers")) and col["num_workers"] >= 1):
+                out.append(f"collector.ray={address}: the Ray actors are the env workers; allowed: collector.num_workers>=1 "
+                           f"(got {col.get('num_workers')}), or collector.ray=null")
+            if name in ("bc", "dagger"):
+                out.append(f"collector.ray={address}: algo={name} collects its demonstrations and DAgger rounds in this process; "
+                           "allowed: collector.ray=null")
     tau = algo.get("bc_pedal_expectile", 0.5)
     if is_number(tau) and tau != 0.5:
         env = c.get("env") if isinstance(c.get("env"), Mapping) else {}

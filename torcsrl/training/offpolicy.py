@@ -80,6 +80,7 @@ from torcsrl.training.common import (
 )
 from torcsrl.training.curriculum import Curriculum, CurriculumError
 from torcsrl.training.demos import make_demos
+from torcsrl.training.ray_collectors import make_ray_collector
 from torcsrl.utils.checkpoint import (
     CheckpointError,
     checkpoint_path,
@@ -252,7 +253,8 @@ def make_buffer(cfg: DictConfig, run_dir: Path) -> ReplayBuffer:
 
 
 def make_collector(cfg: DictConfig, env: EnvBase, policy, collected: int = 0) -> StepCollector | MultiSyncCollector:
-    """In-process :class:`StepCollector` (num_workers = 0) or TorchRL's MultiSyncCollector over ``num_workers`` env processes.
+    """In-process :class:`StepCollector` (num_workers = 0) or TorchRL's MultiSyncCollector over ``num_workers`` env processes
+    (with ``collector.ray`` set: the same workers as Ray actors, :func:`~torcsrl.training.ray_collectors.make_ray_collector`).
     ``collected``: frames collected before (a curriculum stage's new collector): they count towards ``init_random_frames``."""
     c = cfg.collector
     fpb = int(c.frames_per_batch or max(1, env.batch_size.numel()))  # null: one env step of every car
@@ -261,8 +263,12 @@ def make_collector(cfg: DictConfig, env: EnvBase, policy, collected: int = 0) ->
         collector.frames = int(collected)
         return collector
     fns = [functools.partial(make_train_env, cfg, i, load_policy) for i in range(int(c.num_workers))]
+    random_frames = max(0, int(c.init_random_frames) - int(collected))
+    if c.get("ray"):  # the same worker envs as Ray actors (torcsrl.training.ray_collectors); random frames counted per worker
+        return make_ray_collector(str(c.ray), fns, policy, fpb, exploration_type=ExplorationType.RANDOM,
+                                  init_random_frames=-(-random_frames // len(fns)), resume_hint="checkpoint.resume=latest")
     return MultiSyncCollector(fns, policy, frames_per_batch=fpb * int(c.num_workers), total_frames=-1,
-                              init_random_frames=max(0, int(c.init_random_frames) - int(collected)),
+                              init_random_frames=random_frames,
                               exploration_type=ExplorationType.RANDOM,
                               # the learner keeps cfg.threads (TorchRL otherwise sets max(1, threads - workers) silently)
                               num_threads=torch.get_num_threads(), num_sub_threads=1)
@@ -363,7 +369,7 @@ def save(state: TrainState) -> Path:
     buffer_dir = None
     if cfg.checkpoint.buffer:
         buffer_dir = save_dir_atomically(path.with_name(path.stem + "_buffer"), lambda d: state.buffer.dumps(str(d))).name
-    multi = isinstance(state.collector, MultiSyncCollector)
+    in_process = isinstance(state.collector, StepCollector)  # worker processes or Ray actors: no in-flight state kept
     payload = {
         "meta": {**state.meta, "pipeline": pipeline_record(stage_cfg, state.env)},
         "counters": asdict(counters),
@@ -371,7 +377,7 @@ def save(state: TrainState) -> Path:
         "optim": {k: o.state_dict() for k, o in state.optim.items()},
         "policy": state.policy.state_dict(),
         "rng": rng_state(),
-        "collector": collector_state(state.collector, state.env, not multi),
+        "collector": collector_state(state.collector, state.env, in_process),
         "eval_envs": {name: sim_state(e) for name, e in state.eval_envs.items()},
         "buffer_dir": buffer_dir,
         "threads": state.threads,
@@ -397,7 +403,7 @@ def resume(state: TrainState) -> Counters:
     state.policy.load_state_dict(ck["policy"])
     if ck["collector"] and "carrier" in ck["collector"]:  # written by TorchRL's Collector (before StepCollector)
         ck["collector"]["state"] = {"frames": ck["collector"]["state"]["frames"], "carrier": ck["collector"]["carrier"]}
-    if ck["collector"]:
+    if ck["collector"] and isinstance(state.collector, StepCollector):
         restore_collector(state.collector, state.env, ck["collector"])
     else:
         print("[torcsrl] resuming a multi-process collector: worker episodes restart (exact resume needs num_workers=0)", file=sys.stderr)

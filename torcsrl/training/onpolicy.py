@@ -59,6 +59,7 @@ from torcsrl.training.common import (
     validate_all,
     wall_budget_s,
 )
+from torcsrl.training.ray_collectors import RayRollouts, joined_along_cars, make_ray_collector
 from torcsrl.utils.checkpoint import checkpoint_path, latest_checkpoint, prune, resume_from, save_checkpoint
 from torcsrl.utils.collector import StepCollector
 from torcsrl.utils.logging import Progress, log_metrics, make_loggers
@@ -275,18 +276,23 @@ class WorkerRollouts:
         self.collector.shutdown()
 
 
-def make_rollout_collector(cfg: DictConfig, env: EnvBase, policy, workers: int, threads: int) -> StepCollector | WorkerRollouts:
+def make_rollout_collector(cfg: DictConfig, env: EnvBase, policy, workers: int, threads: int) -> StepCollector | WorkerRollouts | RayRollouts:
     """Batches of ``algo.rollout_steps`` steps of every car: in this process (:class:`StepCollector` on ``env``,
     ``collector.num_workers=0``) or from ``workers`` processes (:class:`WorkerRollouts`; ``env`` is then one worker's env,
-    built here for its specs). This process keeps its ``threads`` torch threads; each worker runs one."""
+    built here for its specs; with ``collector.ray`` set, :class:`~torcsrl.training.ray_collectors.RayRollouts`, the same
+    workers as Ray actors). This process keeps its ``threads`` torch threads; each worker runs one."""
     steps_per_car = int(cfg.algo.rollout_steps)
     per_env = max(1, env.batch_size.numel()) * steps_per_car
     if workers < 1:
         return StepCollector(env, policy, per_env)
     wcfg = worker_config(cfg, workers)
     fns = [functools.partial(_worker_env, wcfg, i) for i in range(workers)]
+    lag = int(cfg.collector.get("policy_lag", 0) or 0)
+    if cfg.collector.get("ray"):  # the same worker envs as Ray actors (torcsrl.training.ray_collectors)
+        return make_ray_collector(str(cfg.collector.ray), fns, policy, per_env, sync=not lag, exploration_type=ExplorationType.RANDOM,
+                                  stack=joined_along_cars, resume_hint="checkpoint.resume=latest", join_cars=True)
     common = dict(total_frames=-1, exploration_type=ExplorationType.RANDOM, num_threads=threads, num_sub_threads=1)
-    if int(cfg.collector.get("policy_lag", 0) or 0):  # the workers collect the next rollout during the update
+    if lag:  # the workers collect the next rollout during the update
         return WorkerRollouts(MultiAsyncCollector(fns, policy, frames_per_batch=per_env, **common), workers)
     return WorkerRollouts(MultiSyncCollector(fns, policy, frames_per_batch=per_env * workers, cat_results="stack", **common), workers)
 
@@ -306,7 +312,7 @@ def save(state: TrainState) -> Path:
         "optim": {k: o.state_dict() for k, o in state.optim.items()},
         "rng": rng_state(),
         # worker processes: their in-flight episodes are not kept (a resumed run restarts them), as for the off-policy loop
-        "collector": collector_state(state.collector, state.env, not isinstance(state.collector, WorkerRollouts)),
+        "collector": collector_state(state.collector, state.env, isinstance(state.collector, StepCollector)),
         "eval_envs": {name: sim_state(e) for name, e in state.eval_envs.items()},
         "buffer_dir": None,
         "threads": state.threads,
@@ -326,7 +332,7 @@ def resume(state: TrainState) -> Counters:
     state.critic.load_state_dict(ck["critic"])
     for k, o in state.optim.items():
         o.load_state_dict(ck["optim"][k])
-    if isinstance(state.collector, WorkerRollouts) or not ck["collector"]:
+    if not isinstance(state.collector, StepCollector) or not ck["collector"]:
         print("[torcsrl] resuming with (or from) worker processes: the in-flight episodes restart "
               "(exact resume needs collector.num_workers=0 before and after)", file=sys.stderr)
     else:
