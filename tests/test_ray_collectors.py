@@ -57,14 +57,17 @@ def _ppo_parts(cfg, workers: int):
 
 
 def test_an_unreachable_address_and_a_bad_one_fail_in_one_line_before_any_worker():
-    """Run first, with no Ray in this process: the CLI refuses a malformed address at validation and an address nobody
+    """With no Ray in this process: the CLI refuses a malformed address at validation and an address nobody
     answers within seconds, in one line each."""
-    assert not ray.is_initialized()
+    if ray.is_initialized():  # another test file's Ray in this process would be used as it is, whatever the address
+        ray.shutdown()
     with pytest.raises(ConfigError) as err:
         validate(compose_config(*PPO, "env.num_cars=2", "collector.num_workers=2", "collector.ray=nowhere"))
     assert str(err.value).count("\n") == 0 and "collector.ray: 'nowhere' is not a Ray address; allowed: null (no Ray), local" in str(err.value)
     with pytest.raises(ConfigError, match="collector.ray=local: the Ray actors are the env workers; allowed: collector.num_workers>=1"):
         validate(compose_config(*PPO, "collector.ray=local"))
+    with pytest.raises(ConfigError, match="collector.ray=local: algo=bc collects its demonstrations and DAgger rounds in this process"):
+        validate(compose_config("env=toy", "debug=smoke", "algo=bc", "collector.num_workers=1", "collector.ray=local"))
     t = time.perf_counter()
     p = subprocess.run([sys.executable, "-m", "torcsrl.train", *PPO, "env.num_cars=2", "collector.num_workers=2",
                         "collector.ray=127.0.0.1:9", "total_frames=40", "progress=false"], capture_output=True, text=True, timeout=120)

@@ -253,10 +253,7 @@ class WorkerRollouts:
 
     def __next__(self) -> TensorDictBase:
         if self.lag:  # one worker's batch at a time, [cars a worker, T] (one car a worker: [T]): join `workers` of them
-            parts = [next(self._batches) for _ in range(self.workers)]
-            for part in parts:
-                part.names = None
-            return torch.stack(parts, 0) if parts[0].ndim == 1 else torch.cat(parts, 0)
+            return joined_along_cars([next(self._batches) for _ in range(self.workers)])
         data = next(self._batches)  # [workers, cars a worker, T]; one car a worker: [workers, T]
         data.names = None
         return data.flatten(0, 1) if data.ndim == 3 else data
@@ -290,7 +287,7 @@ def make_rollout_collector(cfg: DictConfig, env: EnvBase, policy, workers: int, 
     lag = int(cfg.collector.get("policy_lag", 0) or 0)
     if cfg.collector.get("ray"):  # the same worker envs as Ray actors (torcsrl.training.ray_collectors)
         return make_ray_collector(str(cfg.collector.ray), fns, policy, per_env, sync=not lag, exploration_type=ExplorationType.RANDOM,
-                                  stack=joined_along_cars, resume_hint="checkpoint.resume=latest", join_cars=True)
+                                  join_cars=True, resume_hint="checkpoint.resume=latest")
     common = dict(total_frames=-1, exploration_type=ExplorationType.RANDOM, num_threads=threads, num_sub_threads=1)
     if lag:  # the workers collect the next rollout during the update
         return WorkerRollouts(MultiAsyncCollector(fns, policy, frames_per_batch=per_env, **common), workers)

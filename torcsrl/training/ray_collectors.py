@@ -58,18 +58,16 @@ class RayRollouts:
     """Batches from W Ray actors (see the module docstring); the interface of the local worker collectors the loops
     drive: iteration, :meth:`update_policy_weights_`, :meth:`shutdown`, and :meth:`worker_policy_states` for checks."""
 
-    def __init__(self, collector, workers: int, stack: Callable[[list[TensorDictBase]], TensorDictBase] | None,
-                 session: contextlib.ExitStack, where: str, resume_hint: str = "", join_cars: bool = False):
+    def __init__(self, collector, workers: int, connection: contextlib.ExitStack, where: str, *, sync: bool = True,
+                 join_cars: bool = False, resume_hint: str = ""):
         self.collector = collector
-        self.join_cars = join_cars
         self.workers = workers
-        self.lag = int(stack is not None)
-        self._stack = stack
-        self._session = session
+        self.lag = int(not sync)
+        self.join_cars = join_cars
+        self._connection = connection  # closes the Ray connection make_ray_collector opened
         self.where = where
         self.resume_hint = resume_hint
         self._batches = None
-        self.procs = []  # no local processes (time/worker_cpu_s is 0 on Ray)
 
     def __iter__(self):
         self._batches = iter(self.collector)
@@ -85,8 +83,8 @@ class RayRollouts:
                                 f"checkpoint is intact{'; resume: ' + self.resume_hint if self.resume_hint else ''}") from None
 
     def __next__(self) -> TensorDictBase:
-        if self.lag:
-            return self._stack([self._next() for _ in range(self.workers)])
+        if self.lag:  # W worker batches as they arrive (PPO with policy_lag=1), joined along the cars
+            return joined_along_cars([self._next() for _ in range(self.workers)])
         data = self._next()  # [workers, cars a worker, T]; one car a worker: [workers, T]
         data.names = None
         return data.flatten(0, 1) if self.join_cars and data.ndim == 3 else data
@@ -95,6 +93,7 @@ class RayRollouts:
         self.collector.update_policy_weights_()
 
     def cpu_s(self) -> float:
+        """CPU seconds of local worker processes: none (the actors' CPU is the cluster's)."""
         return 0.0
 
     def worker_policy_states(self) -> list[dict]:
@@ -113,24 +112,23 @@ class RayRollouts:
             with contextlib.suppress(Exception):
                 self.collector.shutdown(shutdown_ray=False)
         finally:
-            self._session.close()
+            self._connection.close()
 
 
 def make_ray_collector(address: str, fns: list[Callable[[], Any]], policy, frames_per_worker: int, *, sync: bool = True,
-                       init_random_frames: int = 0, exploration_type=None,
-                       stack: Callable[[list[TensorDictBase]], TensorDictBase] | None = None,
-                       resume_hint: str = "", join_cars: bool = False) -> RayRollouts:
+                       init_random_frames: int = 0, exploration_type=None, join_cars: bool = False,
+                       resume_hint: str = "") -> RayRollouts:
     """W = ``len(fns)`` Ray actors, actor ``i`` driving ``fns[i]()`` and collecting ``frames_per_worker`` frames a batch
     (``init_random_frames`` of them uniform random first, counted per worker); a batch is one of every worker, stacked
     (``sync``; ``join_cars``: ``[W, cars, T]`` flattened to ``[W cars, T]``, PPO's layout), or W worker batches as they
-    arrive joined by ``stack`` (``sync=False``). Ray is the session at
-    ``address`` (checked first)."""
+    arrive joined along the cars (``sync=False``, PPO's ``policy_lag=1``). Ray is the one at ``address`` (checked
+    first)."""
     from torchrl.collectors.distributed import RayCollector  # deferred: needs ray
 
     workers = len(fns)
-    session = contextlib.ExitStack()
+    connection = contextlib.ExitStack()
     try:
-        ray, info = session.enter_context(ray_session(address, num_cpus=workers))
+        ray, info = connection.enter_context(ray_session(address, num_cpus=workers))
         if info.cpus < workers:
             raise RayError(f"collector.num_workers={workers}: {info.describe()} cannot hold {workers} workers of one CPU "
                            f"each; allowed: at most {info.cpus} (or a larger cluster)")
@@ -142,14 +140,14 @@ def make_ray_collector(address: str, fns: list[Callable[[], Any]], policy, frame
                                  remote_configs={"num_cpus": 1, "num_gpus": 0}, collector_kwargs=kwargs,
                                  weight_updater=_object_store_weights)
     except BaseException:
-        session.close()
+        connection.close()
         raise
-    where = info.describe()
-    return RayRollouts(collector, workers, None if sync else stack, session, where, resume_hint, join_cars)
+    return RayRollouts(collector, workers, connection, info.describe(), sync=sync, join_cars=join_cars, resume_hint=resume_hint)
 
 
 def joined_along_cars(parts: list[TensorDictBase]) -> TensorDictBase:
-    """Worker batches ``[cars, T]`` (one car: ``[T]``) joined along the cars, worker by worker."""
+    """Worker batches ``[cars, T]`` (one car: ``[T]``) joined along the cars, worker by worker: PPO's ``[cars, T]``
+    from lagged workers, local (:class:`~torcsrl.training.onpolicy.WorkerRollouts`) or on Ray."""
     for part in parts:
         part.names = None
     return torch.stack(parts, 0) if parts[0].ndim == 1 else torch.cat(parts, 0)
