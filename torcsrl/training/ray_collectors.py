@@ -14,7 +14,7 @@ policy's parameters AND buffers (the observation statistics) once and queues the
 collection, so every batch after an update is collected with it (TorchRL's default Ray scheme opens a Gloo process
 group between the learner and every actor, which needs open ports between the nodes; the object store does not).
 
-Addresses are :mod:`torcsrl.utils.ray_session`'s: ``local`` starts a Ray instance here with W CPUs, ``auto`` /
+Addresses are those of the report's ``ray=``: ``local`` starts a Ray instance here with W CPUs, ``auto`` /
 ``host:port`` / ``ray://host:port`` join a cluster. Bad input fails before any worker starts, in one line: ray not
 installed, an address nobody answers, more workers than the cluster has CPUs. A worker that dies mid-run (its node
 lost) stops the run with one line naming the worker and how to resume from the last checkpoint; nothing hangs.
