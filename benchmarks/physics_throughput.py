@@ -58,6 +58,10 @@ def make_fleet(n: int, backend: str = "auto", control_hz: float = CONTROL_HZ,
     return step, lambda: p.disconnect(cid)
 
 
+#: How far from the origin the raw racecar may drive before it is carried back across the plane [m].
+PLANE_KEEP_M = 80.0
+
+
 def make_racecar(rays: int = 0, ray_len_m: float = 200.0) -> tuple[Callable[[], None], Callable[[], None]]:
     """pybullet_data's racecar URDF: 4 wheel velocity motors + 2 steering position motors, 5 x 240 Hz, driven by
     seeded random actions; with ``rays`` > 0 it also casts that many rays of ``ray_len_m`` in a fan over +-90 deg of
@@ -86,11 +90,19 @@ def make_racecar(rays: int = 0, ray_len_m: float = 200.0) -> tuple[Callable[[], 
             p.stepSimulation(physicsClientId=cid)
         (x, y, z), quat = p.getBasePositionAndOrientation(car, physicsClientId=cid)
         p.getBaseVelocity(car, physicsClientId=cid)
+        if abs(x) > PLANE_KEEP_M or abs(y) > PLANE_KEEP_M:
+            # pybullet_data's plane ends ~100 m out; a car that drives off it falls through empty space with no
+            # contacts and steps ~2.5x faster, so the reference would stop being a car on the ground. Carry it back
+            # across the plane (pose and velocities kept).
+            x, y = x - math.copysign(2 * PLANE_KEEP_M, x) * (abs(x) > PLANE_KEEP_M), \
+                y - math.copysign(2 * PLANE_KEEP_M, y) * (abs(y) > PLANE_KEEP_M)
+            p.resetBasePositionAndOrientation(car, (x, y, z), quat, physicsClientId=cid)
         if angles:
             yaw = p.getEulerFromQuaternion(quat)[2]
             to = [(x + ray_len_m * math.cos(yaw + t), y + ray_len_m * math.sin(yaw + t), z + 0.3) for t in angles]
             p.rayTestBatch([(x, y, z + 0.3)] * len(angles), to, numThreads=1, physicsClientId=cid)
 
+    step.client, step.car = cid, car  # for a check of where the car is
     return step, lambda: p.disconnect(cid)
 
 

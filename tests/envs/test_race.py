@@ -636,3 +636,20 @@ def test_vehicle_backends_drive_the_same_race():
         env.close()
     assert np.abs(pos["numba"] - pos["numpy"]).max() < 1e-6 and np.abs(pos["python"] - pos["numpy"]).max() < 1e-6
     assert (np.linalg.norm(pos["numba"][:, :2] - start[:, :2], axis=1) > 10.0).all()  # the cars did drive
+
+
+def test_gym_info_reads_the_cores_info_for_the_one_car():
+    """RaceEnv's info for one car (read as floats, without RaceCore.info()'s [N] copies) is the core's info()."""
+    env = gym.make("torcsrl/Race-v0", track="hairpins")
+    env.reset(seed=4)
+    core = env.unwrapped.core
+    rng = np.random.default_rng(4)
+    laps = 0
+    for _ in range(600):
+        _, _, te, tr, info = env.step(np.array([rng.uniform(-0.2, 0.2), 1.0], dtype=np.float32))
+        general = {k: (int(v[0]) if k == "lap" else float(v[0])) for k, v in core.info().items()}
+        assert {k: info[k] for k in general} == general
+        laps = max(laps, info["lap"])
+        if te or tr:
+            env.reset()
+    env.close()

@@ -340,3 +340,20 @@ def test_the_parsed_track_cache_is_bounded():
     assert info.currsize == tracks.TRACK_CACHE_SIZE == info.maxsize
     again = tracks.load("gen-40000")  # evicted, generated again
     assert again is not first and np.array_equal(again.xy, first.xy)
+
+
+def test_surfaces_at_is_track_point_then_frame_at():
+    """Track.surfaces_at (the wheels' surfaces in one call) gives what a walk and frame_at give point by point."""
+    rng = np.random.default_rng(0)
+    for t, chord in [(t, c) for t in (tracks.load("hairpins"), tracks.load("rallycross")) for c in range(0, len(t.xy), 7)]:
+        x0, y0 = t.xy[chord]
+        pts = [(float(x0 + dx), float(y0 + dy)) for dx, dy in rng.uniform(-12.0, 12.0, size=(4, 2))]
+        want = []
+        for x, y in pts:
+            r = t.track_point(x, y, chord)
+            if r is None:
+                want = None
+                break
+            w_l, w_r, _, sid = t.frame_at(r[2], r[3])
+            want.append(sid if -w_r <= r[1] <= w_l else surfaces.GRASS_ID)
+        assert t.surfaces_at(pts, chord) == want

@@ -558,3 +558,22 @@ if __name__ == "__main__":  # print the validation figures
         print(f"full throttle, {label}: 0-100 km/h {t100:.2f} s, top speed {v[-1] * 3.6:.1f} km/h")
     print(f"slip angle, steer 0.15 + throttle 0.3 from 12 m/s: ice {max_slip_angle('ice'):.1f} deg, "
           f"asphalt {max_slip_angle('asphalt'):.1f} deg")
+
+
+@pytest.mark.parametrize("n", [1, 3])
+def test_update_wheel_surfaces_matches_set_wheel_surfaces(world, n):
+    """The env's unchecked update gives the checked setter's grip and rolling resistance, and keeps the arrays
+    when the wheels stay on the surfaces they were on."""
+    f, ref = world.fleet(n), world.fleet(n)
+    ids = np.tile(np.array([surface_id("asphalt"), surface_id("dirt"), surface_id("grass"), surface_id("ice")]), (n, 1))
+    f._update_wheel_surfaces(ids)
+    ref.set_wheel_surfaces(ids)
+    assert np.array_equal(f.wheel_surfaces, ids) and np.array_equal(f.wheel_mu, ref.wheel_mu)
+    assert np.array_equal(f._crr_a, ref._crr_a)
+    mu = f.wheel_mu
+    f._update_wheel_surfaces(ids.copy())
+    assert f.wheel_mu is mu
+    ids[-1, 0] = surface_id("wet")
+    f._update_wheel_surfaces(ids)
+    ref.set_wheel_surfaces(ids)
+    assert f.wheel_mu is not mu and np.array_equal(f.wheel_mu, ref.wheel_mu)

@@ -173,24 +173,28 @@ class Rangefinder:
     def read(self, slots: np.ndarray, xy: np.ndarray, yaw: np.ndarray, on_track: np.ndarray) -> np.ndarray:
         """Beam distances ``[N, B]`` float32 [m] for cars at ``xy [N,2]`` (track frame), ``yaw [N]``."""
         n, b = len(xy), self.n_beams
-        out = np.full((n, b), OFF_TRACK_READING, dtype=np.float32)
-        idx = np.flatnonzero(on_track)
-        if len(idx) == 0:
-            return out
         if n == 1:  # one car: plain floats (numpy's per-call overhead dominates at this size)
+            if not on_track[0]:
+                return np.full((1, b), OFF_TRACK_READING, dtype=np.float32)
             ox, oy = self._offsets[int(slots[0])]
             x0, y0, psi, r = float(xy[0, 0]) + ox, float(xy[0, 1]) + oy, float(yaw[0]), self.range_m
             start = [(x0, y0, 0.0)] * b
             end = [(x0 + r * math.cos(psi + a), y0 + r * math.sin(psi + a), 0.0) for a in self._angle_list]
-        else:
-            origin = xy[idx] + np.stack([self._offsets[int(s)] for s in slots[idx]])
-            ang = yaw[idx, None] + self.angles[None, :]
-            k = len(idx) * b
-            start = np.zeros((k, 3))
-            start[:, :2] = np.repeat(origin, b, axis=0)
-            end = start.copy()
-            end[:, 0] += self.range_m * np.cos(ang).ravel()
-            end[:, 1] += self.range_m * np.sin(ang).ravel()
+            hits = p.rayTestBatch(start, end, physicsClientId=self.client)
+            frac = np.fromiter(map(_hit_fraction, hits), dtype=np.float64, count=b)
+            return (frac * r).astype(np.float32).reshape(1, b)
+        out = np.full((n, b), OFF_TRACK_READING, dtype=np.float32)
+        idx = np.flatnonzero(on_track)
+        if len(idx) == 0:
+            return out
+        origin = xy[idx] + np.stack([self._offsets[int(s)] for s in slots[idx]])
+        ang = yaw[idx, None] + self.angles[None, :]
+        k = len(idx) * b
+        start = np.zeros((k, 3))
+        start[:, :2] = np.repeat(origin, b, axis=0)
+        end = start.copy()
+        end[:, 0] += self.range_m * np.cos(ang).ravel()
+        end[:, 1] += self.range_m * np.sin(ang).ravel()
         hits = p.rayTestBatch(start, end, physicsClientId=self.client)
         frac = np.fromiter(map(_hit_fraction, hits), dtype=np.float64, count=len(idx) * b)
         out[idx] = (frac * self.range_m).reshape(len(idx), b)

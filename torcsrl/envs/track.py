@@ -401,6 +401,22 @@ class Track:
         ny = NY[chord] + t * (MY[chord] - NY[chord])
         return WL[chord] + t * DWL[chord], WR[chord] + t * DWR[chord], math.atan2(-nx, ny), SID[chord]
 
+    def surfaces_at(self, points: list, chord: int) -> list[int] | None:
+        """Surface id under each ``(x, y)`` of ``points`` (grass off the track), each walked from ``chord`` by
+        :meth:`track_point` and tested against :meth:`frame_at`'s widths (the same operations); ``None`` if a walk
+        does not settle."""
+        py = self._py()
+        WL, DWL, WR, DWR, SID = py[10:15]
+        grass = _surf.GRASS_ID
+        out = []
+        for x, y in points:
+            r = self.track_point(x, y, chord)
+            if r is None:
+                return None
+            _, d, c, t = r
+            out.append(SID[c] if -(WR[c] + t * DWR[c]) <= d <= WL[c] + t * DWL[c] else grass)
+        return out
+
     # ------------------------------------------------------------------ variants and checks
     def with_surface(self, name: str) -> "Track":
         """The same layout with every road stretch on surface ``name``."""

@@ -552,7 +552,7 @@ class RaceCore(CarLocator):
         self.steps[0] += 1
         dist = float(self.dist_raced[0]) + progress
         self.dist_raced[0] = dist
-        self._laps()
+        self._laps_one(t.length, now, dist)
         best, best_t = float(self.best_dist[0]), float(self.best_dist_time[0])
         if dist > best:
             best, best_t = dist, now
@@ -587,6 +587,23 @@ class RaceCore(CarLocator):
         self.terminated = np.array([term])
         self.truncated = np.array([not term and (int(self.steps[0]) >= self.max_steps or fin)])
 
+    def _laps_one(self, length: float, now: float, dist: float) -> None:
+        """:meth:`_laps` for one car in plain floats (the same operations in the same order); ``crossings`` and
+        ``lap`` are replaced by new arrays as :meth:`_laps` replaces them, the lap times are written in place."""
+        cross = math.floor((float(self.s0[0]) + dist) / length)
+        if cross > int(self.crossings[0]):
+            lap_time = now - float(self.lap_start_time[0])
+            if self.lap_timed[0]:
+                self.last_lap_time[0] = lap_time
+                best = float(self.best_lap_time[0])
+                if best == 0 or lap_time < best:
+                    self.best_lap_time[0] = lap_time
+            self.lap_start_time[0] = now
+            self.lap_timed[0] = True
+            self.crossings = np.array([cross], dtype=np.int64)
+        self.lap = np.array([max(int(self.lap[0]), math.floor((dist - float(self.start_back[0])) / length))],
+                            dtype=np.int64)
+
     def _laps(self) -> None:
         """``lap``: full laps driven since the start (``distRaced // length``; from the grid, the
         line crossings). Lap *times* run from one start-line crossing to the next, so after a
@@ -620,14 +637,20 @@ class RaceCore(CarLocator):
             groups = self.traffic.group if self.traffic is not None else np.arange(self.n)
             obs["opponents"] = opponent_sectors(fleet.pos[:, :2], fleet.yaw, groups, range_m=OPPONENT_RANGE_M)
         if "state" in keys or "telemetry" in keys:
-            v = fleet.vel_body * MS_TO_KMH
-            st = np.empty((self.n, len(STATE_SLOTS)), dtype=np.float32)
-            st[:, 0] = self.angle
-            st[:, 1] = self.track_pos
-            st[:, 2:5] = v
-            st[:, 5:9] = fleet.wheel_omega
-            st[:, 9] = fleet.rpm
-            st[:, 10] = fleet.gear
+            if self.n == 1:  # one car: one array from floats (the same float64 products, the same casts)
+                vx, vy, vz = fleet.vel_body[0].tolist()
+                st = np.array([[float(self.angle[0]), float(self.track_pos[0]), vx * MS_TO_KMH, vy * MS_TO_KMH,
+                                vz * MS_TO_KMH, *fleet.wheel_omega[0].tolist(), float(fleet.rpm[0]),
+                                float(fleet.gear[0])]], dtype=np.float32)
+            else:
+                v = fleet.vel_body * MS_TO_KMH
+                st = np.empty((self.n, len(STATE_SLOTS)), dtype=np.float32)
+                st[:, 0] = self.angle
+                st[:, 1] = self.track_pos
+                st[:, 2:5] = v
+                st[:, 5:9] = fleet.wheel_omega
+                st[:, 9] = fleet.rpm
+                st[:, 10] = fleet.gear
             if "state" in keys:
                 obs["state"] = st
             if "telemetry" in keys:

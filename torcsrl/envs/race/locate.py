@@ -48,7 +48,7 @@ class CarLocator:
             walk = self._locate_scalar if self.n <= PYTHON_WALK_MAX_CARS else self._locate_walk
             ids = walk(pos, wheels, fleet.yaw)
             if ids is not None:
-                fleet.set_wheel_surfaces(ids)
+                fleet._update_wheel_surfaces(ids)
                 return
         pts = np.concatenate([pos[:, None, :], wheels], axis=1)  # [N, 5, 2]
         hint = self.s
@@ -66,11 +66,10 @@ class CarLocator:
             self.track_pos[g] = np.where(d[:, 0] >= 0.0, d[:, 0] / wl[:, 0], d[:, 0] / wr[:, 0])
             self.angle[g] = (fleet.yaw[g] - heading[:, 0] + math.pi) % (2.0 * math.pi) - math.pi
             self.chord[g] = t._locate(s[:, 0])[0]
-        fleet.set_wheel_surfaces(ids)
+        fleet._update_wheel_surfaces(ids)
 
     def _locate_scalar(self, pos: np.ndarray, wheels: np.ndarray, yaw: np.ndarray) -> np.ndarray | None:
-        ids = np.empty((self.n, 4), dtype=np.int64)
-        grass = _surf.GRASS_ID
+        ids = []
         wl_ = wheels.tolist()
         for i in range(self.n):
             t = self.car_tracks[i]
@@ -82,13 +81,11 @@ class CarLocator:
             self.s[i], self.d[i], self.chord[i] = s, d, chord
             self.track_pos[i] = d / wl if d >= 0.0 else d / wr
             self.angle[i] = (float(yaw[i]) - heading + math.pi) % (2.0 * math.pi) - math.pi
-            for k, (x, y) in enumerate(wl_[i]):
-                rw = t.track_point(x, y, chord)
-                if rw is None:
-                    return None
-                w_l, w_r, _, sid = t.frame_at(rw[2], rw[3])
-                ids[i, k] = sid if -w_r <= rw[1] <= w_l else grass
-        return ids
+            sids = t.surfaces_at(wl_[i], chord)
+            if sids is None:
+                return None
+            ids.append(sids)
+        return np.array(ids, dtype=np.int64)
 
     def _locate_walk(self, pos: np.ndarray, wheels: np.ndarray, yaw: np.ndarray) -> np.ndarray | None:
         """:meth:`_locate_scalar` vectorised over the cars (:meth:`Track.track_points`): the same numbers, bit for

@@ -326,6 +326,18 @@ class CarFleet(NumpyBackend, PythonBackend):
         self._mu = MU[ids] * self.params.tyre_mu_scale
         self._crr_a = ROLLING_RESISTANCE[ids] * (self.params.wheel_radius * self._wheel_a)
 
+    def _update_wheel_surfaces(self, ids: np.ndarray) -> None:
+        """:meth:`set_wheel_surfaces` for the env's own ``[N, 4]`` int64 ids (valid by construction, so not
+        checked again), and nothing to do when the wheels are on the surfaces they were on."""
+        if self.n == 1:
+            if ids.tolist() == self._surface.tolist():
+                return
+        elif np.array_equal(ids, self._surface):
+            return
+        self._surface = ids.copy()
+        self._mu = MU[ids] * self.params.tyre_mu_scale
+        self._crr_a = ROLLING_RESISTANCE[ids] * (self.params.wheel_radius * self._wheel_a)
+
     @property
     def wheel_surfaces(self) -> np.ndarray:
         """Surface id under each wheel ``[N, 4]`` for the current control step."""

@@ -61,7 +61,10 @@ class PythonBackend:
         self._raw = np.array(self._raws)
         self._rot = np.array([f[1] for f in self._frames]).reshape(n, 3, 3)
         self._twist_b = np.array([f[2] for f in self._frames])
-        self._ray_pts = np.concatenate([np.reshape(self._frm, (n, 4, 3)), np.reshape(self._to, (n, 4, 3))], axis=1)
+        if n == 1:  # one array call instead of three (the same numbers)
+            self._ray_pts = np.array(self._frm + self._to).reshape(1, 8, 3)
+        else:
+            self._ray_pts = np.concatenate([np.reshape(self._frm, (n, 4, 3)), np.reshape(self._to, (n, 4, 3))], axis=1)
 
     def _step_python(self, controls: np.ndarray) -> None:
         """One control step car by car in floats: the equations of :meth:`_step_numpy` and
