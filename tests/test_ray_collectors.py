@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 import subprocess
 import sys
+import threading
 import time
 
 import pytest
@@ -153,3 +154,36 @@ def test_a_node_lost_mid_run_is_one_line_not_a_hang(cluster, tmp_path):
     finally:
         collector.shutdown()
         env.close()
+
+
+def test_a_node_lost_in_a_training_run_ends_it_with_a_checkpoint_it_resumes_from(cluster, tmp_path):
+    """A whole ``train(cfg)`` on the two-node cluster plus a third node that goes away once the run has written a
+    checkpoint: the run ends with RayWorkerLost in one line (no hang), and resuming on a cluster that has the CPUs
+    again continues from that checkpoint to the end."""
+    node = cluster.add_node(num_cpus=1)
+    cluster.wait_for_nodes()
+    ckpts = tmp_path / "checkpoints"
+    ov = [*PPO, "env.num_cars=3", "collector.num_workers=3", f"collector.ray={cluster.address}", "logger.every_frames=60",
+          "checkpoint.every_frames=60", f"run_dir={tmp_path}"]
+
+    def remove_node_after_a_checkpoint():
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not list(ckpts.glob("ckpt_*.pt")):
+            time.sleep(0.1)
+        cluster.remove_node(node)
+
+    killer = threading.Thread(target=remove_node_after_a_checkpoint, daemon=True)
+    killer.start()
+    t = time.perf_counter()
+    with pytest.raises(RayWorkerLost) as err:
+        train(compose_config(*ov, "total_frames=1000000"))
+    killer.join()
+    assert time.perf_counter() - t < 240
+    assert str(err.value).count("\n") == 0 and "resume: checkpoint.resume=latest" in str(err.value)
+    saved = sorted(ckpts.glob("ckpt_*.pt"))
+    assert saved
+    frames = int(saved[-1].stem.split("_")[1])
+    cluster.add_node(num_cpus=1)
+    cluster.wait_for_nodes()
+    r = train(compose_config(*ov, f"total_frames={frames + 120}", "checkpoint.resume=latest"))
+    assert r["frames"] >= frames + 120 and r["updates"] > 0
