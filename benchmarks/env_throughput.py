@@ -4,9 +4,11 @@
 
 The first table is the env against raw pybullet in the same run: ``gym.make("torcsrl/Race-v0")`` with its default
 arguments, uniform random actions, reset when an episode ends, beside pybullet's racecar URDF (pybullet_data, 50 Hz
-x 5 substeps of 240 Hz) with 19 ray tests of 200 m per step (``rayTestBatch``, the TORCS rangefinder's fan), in
-interleaved rounds (best of each). The ratio env / raw is printed step-only (reset time excluded) and with resets,
-with the mean reset cost; goal: >= 2.0x. ``--raw-only`` prints just that table.
+x 5 substeps of 240 Hz) with 19 ray tests of 200 m per step (``rayTestBatch``, the TORCS rangefinder's fan; the car is
+carried back across the plane before it drives off its edge, where it would fall and step 2.5x faster), in
+interleaved rounds (best of each). The ratio env / raw is printed step-only (reset time excluded) and with resets, with
+the mean reset cost; goal: >= 2.0x. ``--raw-only`` prints just that table. Where the env's step goes:
+``benchmarks/env_profile.py``.
 
 One process, one thread, everything measured in the same run (ratios are what to compare; the
 machine is shared and absolute figures move). Observations: rangefinder + state. Peers are

@@ -32,3 +32,18 @@ def test_the_raw_racecar_stays_on_the_plane(monkeypatch):
     finally:
         close()
     assert abs(x) <= 3.5 and abs(y) <= 3.5 and z > -0.5
+
+
+def test_env_profile_times_the_parts_of_a_step(capsys):
+    """benchmarks/env_profile.py: every part is timed inside the step it belongs to, and the table prints."""
+    from torcsrl.envs.race.core import RaceCore
+
+    bench = load_benchmark("env_profile")
+    step = RaceCore.__dict__["step"]
+    r = bench.profile(steps=80)
+    assert RaceCore.__dict__["step"] is step  # the timers are taken off again
+    assert r["env.step"] > r["RaceCore.step"] > r["car physics (CarFleet.step)"] > r["reading the bodies' frames"] > 0
+    assert r["observation"] > r["rangefinder rays"] > 0 and r["gym info dict"] > 0
+    assert bench.main(["--steps", "40"]) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"car physics \(CarFleet.step\) +\d+\.\d +\d+\.\d%", out) and "reset (RaceCore.reset)" in out
