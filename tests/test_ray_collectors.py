@@ -167,7 +167,7 @@ def test_a_node_lost_in_a_training_run_ends_it_with_a_checkpoint_it_resumes_from
           "checkpoint.every_frames=60", f"run_dir={tmp_path}"]
 
     def remove_node_after_a_checkpoint():
-        deadline = time.monotonic() + 120
+        deadline = time.monotonic() + 400  # the actors start slowly on a loaded machine (a first checkpoint took > 120 s)
         while time.monotonic() < deadline and not list(ckpts.glob("ckpt_*.pt")):
             time.sleep(0.1)
         cluster.remove_node(node)
@@ -178,7 +178,7 @@ def test_a_node_lost_in_a_training_run_ends_it_with_a_checkpoint_it_resumes_from
     with pytest.raises(RayWorkerLost) as err:
         train(compose_config(*ov, "total_frames=1000000"))
     killer.join()
-    assert time.perf_counter() - t < 240
+    assert time.perf_counter() - t < 480
     assert str(err.value).count("\n") == 0 and "resume: checkpoint.resume=latest" in str(err.value)
     saved = sorted(ckpts.glob("ckpt_*.pt"))
     assert saved
