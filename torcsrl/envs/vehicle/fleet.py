@@ -322,6 +322,10 @@ class CarFleet(NumpyBackend, PythonBackend):
         if ids.dtype.kind not in "iu" or ids.min() < 0 or ids.max() >= len(SURFACE_NAMES):
             raise ValueError(f"surface ids must be integers in [0, {len(SURFACE_NAMES) - 1}] "
                              f"({', '.join(SURFACE_NAMES)}), got {np.unique(ids)}")
+        self._apply_wheel_surfaces(ids)
+
+    def _apply_wheel_surfaces(self, ids: np.ndarray) -> None:
+        """Keep valid ``[N, 4]`` ids and the grip and rolling resistance they give each wheel."""
         self._surface = ids.copy()
         self._mu = MU[ids] * self.params.tyre_mu_scale
         self._crr_a = ROLLING_RESISTANCE[ids] * (self.params.wheel_radius * self._wheel_a)
@@ -334,9 +338,7 @@ class CarFleet(NumpyBackend, PythonBackend):
                 return
         elif np.array_equal(ids, self._surface):
             return
-        self._surface = ids.copy()
-        self._mu = MU[ids] * self.params.tyre_mu_scale
-        self._crr_a = ROLLING_RESISTANCE[ids] * (self.params.wheel_radius * self._wheel_a)
+        self._apply_wheel_surfaces(ids)
 
     @property
     def wheel_surfaces(self) -> np.ndarray:
