@@ -99,6 +99,8 @@ def test_race_env_sac_with_demonstrations_and_smoothness_and_ppo_evaluate_like_t
     (["algo=ppo", "algo.target_kl=0"], "algo.target_kl=0: the approximate KL at which a rollout's epochs stop; allowed: a number > 0"),
     (["algo=td3", "algo.lr_schedule=linear"], "algo.lr_schedule=linear: the learning-rate schedule applies to algo=ppo only"),
     (["algo=sac", "algo.target_kl=0.02"], "algo.target_kl=0.02: the KL early stop of a rollout's epochs applies to algo=ppo only"),
+    (["algo=td3", "algo.log_std_end=-1"], "algo.log_std_end=-1: the policy-std schedule applies to algo=ppo only; allowed: null"),
+    (["algo=ppo", "algo.log_std_end=-9"], "algo.log_std_end=-9: the policy's log std at total_frames; allowed: a number in [-5, 2]"),
 ])
 def test_options_that_do_not_apply_are_refused_in_one_line(overrides, line):
     with pytest.raises(ConfigError) as err:
@@ -131,6 +133,24 @@ def test_ppo_linear_learning_rate_kl_early_stop_and_smoothness(tmp_path):
     res = train(cfg_for(*ov, "total_frames=400", f"run_dir={tmp_path / 'cut'}", "checkpoint.resume=latest"))
     for k in ("frames", "updates", "loss/objective", "loss/critic", "loss/smooth_temporal", "loss/smooth_spatial"):
         assert res[k] == ref[k], k
+
+
+def test_ppo_log_std_schedule_sets_the_std_each_rollout_explores_with(tmp_path):
+    """``algo.log_std_end``: the actor's log std goes linearly from log_std_init to log_std_end over total_frames, set
+    before each rollout and not moved by the updates (learnt, it would drift from the schedule's value)."""
+    ov = ["algo=ppo", *PPO, "env.num_cars=2", "algo.log_std_init=0.0", "algo.log_std_end=-1.0", "algo.actor_lr=0.05",
+          "checkpoint.every_frames=100", "checkpoint.keep=10", "logger.every_frames=100", "eval.every_episodes=1000",
+          "total_frames=400"]
+    out = train(cfg_for(*ov, f"run_dir={tmp_path / 'sched'}"))
+    ckpts = sorted((tmp_path / "sched" / "checkpoints").glob("ckpt_*.pt"))
+    assert len(ckpts) >= 3 and out["frames"] == 400
+    for path in ckpts:
+        ck = torch.load(path, weights_only=False)
+        frames = int(ck["counters"]["frames"])
+        torch.testing.assert_close(ck["actor"]["log_std"], torch.full((2,), -frames / 400))  # the next rollout's std
+    learnt = train(cfg_for(*ov[:-1], "algo.log_std_end=null", "total_frames=400", f"run_dir={tmp_path / 'learnt'}"))
+    ck = torch.load(learnt["checkpoint"], weights_only=False)
+    assert not torch.allclose(ck["actor"]["log_std"], torch.zeros(2))  # without the schedule the updates move it
 
 
 def test_set_learning_rates_schedules():

@@ -268,6 +268,10 @@ def _check_algo(algo: Any, out: list[str]) -> None:
         out.append(f"algo.bc_lr_schedule: unknown schedule {algo['bc_lr_schedule']!r}; allowed: {', '.join(BC_LR_SCHEDULES)}")
     if isinstance(algo, Mapping) and algo.get("lr_schedule", "constant") not in LR_SCHEDULES:
         out.append(f"algo.lr_schedule: unknown schedule {algo['lr_schedule']!r}; allowed: {', '.join(LR_SCHEDULES)}")
+    end = algo.get("log_std_end") if isinstance(algo, Mapping) else None
+    if end is not None and not (is_number(end) and -5.0 <= float(end) <= 2.0):
+        out.append(f"algo.log_std_end={end!r}: the policy's log std at total_frames; allowed: a number in [-5, 2] (the actor's "
+                   "log std bounds), or null (learnt)")
     kl = algo.get("target_kl") if isinstance(algo, Mapping) else None
     if kl is not None and (isinstance(kl, bool) or not is_number(kl) or kl <= 0):
         out.append(f"algo.target_kl={kl!r}: the approximate KL at which a rollout's epochs stop; allowed: a number > 0 [nats], or null")
@@ -377,6 +381,8 @@ def _check_algo_fit(c: Mapping, out: list[str]) -> None:
                        "bc_lr_schedule for bc/dagger); allowed: constant")
         if algo.get("target_kl") is not None:
             out.append(f"algo.target_kl={algo['target_kl']}: the KL early stop of a rollout's epochs applies to algo=ppo only; allowed: null")
+        if algo.get("log_std_end") is not None:
+            out.append(f"algo.log_std_end={algo['log_std_end']}: the policy-std schedule applies to algo=ppo only; allowed: null")
     if name not in ("sac", "ppo"):
         return
     why = f"algo={name} explores by sampling its own policy"

@@ -103,6 +103,8 @@ def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     epochs, minibatch = int(cfg.algo.epochs), int(cfg.algo.batch_size)
     target_kl = None if cfg.algo.get("target_kl") is None else float(cfg.algo.target_kl)
     base_lrs = {k: float(cfg.algo[f"{k}_lr"]) for k in optim}  # actor_lr, critic_lr: what lr_schedule scales
+    std_schedule = log_std_schedule(actor, cfg.algo, total)
+    std_schedule(counters.frames)  # the first rollout's std (a resumed run: the std its next rollout had)
     log_every, eval_every, ckpt_every = int(cfg.logger.every_frames), int(cfg.eval.every_episodes), int(cfg.checkpoint.every_frames) or total
     encoders = [m.encoder for m in (actor, critic) if m.encoder.norm is not None]
     last: dict[str, Any] = {}
@@ -129,6 +131,7 @@ def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             last = update(agent, hot, loss, optim, data, epochs, minibatch, counters, target_kl) or last
             for enc in encoders:
                 enc.update_norm(*[data.get(k) for k in obs_keys])
+            std_schedule(counters.frames)  # the next rollout's std, sent with the weights
             collector.update_policy_weights_()
 
             # log
@@ -197,6 +200,27 @@ def set_learning_rates(optim: dict, base_lrs: dict[str, float], schedule: str, f
     for name, opt in optim.items():
         for group in opt.param_groups:
             group["lr"] = base_lrs[name] * frac
+
+
+def log_std_schedule(actor, algo: DictConfig, total: int):
+    """``algo.log_std_end``: a function of the frames collected that sets the actor's (state-independent) log std to
+    ``log_std_init + (log_std_end - log_std_init) * min(1, frames / total)`` and keeps it out of the gradient, so the
+    noise a rollout explores with is a schedule (annealed exploration) rather than learnt. It is set after an update,
+    before the rollout it acts in, so PPO's ratio compares against the std that collected the data. ``null``: the std
+    is learnt, and the function does nothing."""
+    end = algo.get("log_std_end")
+    if end is None:
+        return lambda frames: None
+    log_std = getattr(actor, "log_std", None)
+    if not isinstance(log_std, torch.nn.Parameter):
+        raise ValueError("algo.log_std_end: the actor has no state-independent log std to schedule; allowed: null")
+    log_std.requires_grad_(False)
+    start, end = float(algo.log_std_init), float(end)
+
+    def set_std(frames: int) -> None:
+        log_std.fill_(start + (end - start) * min(1.0, frames / max(1, total)))
+
+    return set_std
 
 
 def worker_config(cfg: DictConfig, workers: int) -> DictConfig:
