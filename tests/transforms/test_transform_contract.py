@@ -146,3 +146,30 @@ def test_severity_monotone(name, clean_rollout):
     assert devs[4] > devs[0], devs
     for a, b in zip(devs, devs[1:]):
         assert b >= 0.75 * a - 1e-6, f"not monotone: {devs}"
+
+
+@pytest.mark.parametrize("name", ["rangefinder.noise", "rangefinder.dead_beams", "state.noise", "state.latency"])
+def test_p_switches_the_effect_on_for_a_share_of_episodes(name):
+    """``p``: each env's effect is on for an episode with probability p (drawn at each reset), off envs read clean;
+    ``p=1`` draws nothing more, so it is the effect without ``p`` to the bit; p outside (0, 1] is refused."""
+    keys = keys_for(name)
+
+    def rollout(**kw):
+        torch.manual_seed(0)  # the random actions
+        env = DegradedEnv(ToySensorEnv([64], offtrack=False, seed=3), Compose(KeepClean(keys), make(name, 5, seed=1, **kw)))
+        return env.rollout(8, break_when_any_done=False)
+
+    def clean_rows(td):  # envs whose observation equals the clean one at every step
+        k = keys[0]
+        return (td[k] == td[k + "_clean"]).reshape(64, 8, -1).all(-1).all(-1)
+
+    base, same, half = rollout(), rollout(p=1.0), rollout(p=0.5)
+    assert (base == same).all()
+    assert not clean_rows(base).any()
+    off = clean_rows(half)
+    assert 16 <= int(off.sum()) <= 48  # about half of 64 envs read clean the whole episode
+    on = ~off
+    k = keys[0]
+    assert not torch.equal(half[k][on], half[k + "_clean"][on])
+    with pytest.raises(ValueError, match="allowed: 0 < p <= 1"):
+        make(name, 5, p=0.0)

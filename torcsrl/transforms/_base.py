@@ -182,6 +182,10 @@ class Degradation(Transform):
         seed: seeds the transform's generator (else one is drawn from torch's global RNG).
         optional: skip keys the env / tensordict does not have instead of raising
             (weather presets use it so one preset fits every sensor set).
+        p: the probability that the degradation is on in an episode, drawn per env at each reset
+            (1: always on). Randomised training stacks use it so that an episode meets a few effects
+            rather than the whole catalogue at once; an env drawn off sees its clean reading (a
+            temporal effect keeps its history all the same, so switching on needs no warm-up).
         **params: a ladder parameter by name (a number for every severity, or 5 numbers for a
             new ladder), or an option (see the class's ``options``).
     """
@@ -215,10 +219,14 @@ class Degradation(Transform):
         out_keys: Sequence[str] | None = None,
         seed: int | None = None,
         optional: bool = False,
+        p: float = 1.0,
         **params: Any,
     ):
         cls = type(self).__name__
         self.severity_range = check_severity(severity, cls)
+        if isinstance(p, bool) or not isinstance(p, (int, float)) or not 0.0 < float(p) <= 1.0:
+            raise ValueError(f"{cls}: p={p!r} is the probability that the effect is on in an episode; allowed: 0 < p <= 1")
+        self.p = float(p)
         in_keys = as_list(in_keys, keep_none=True, atoms=(str, tuple))  # a tuple is one nested key
         out_keys = as_list(out_keys, keep_none=True, atoms=(str, tuple))
         self._auto = in_keys is None and not self.default_in_keys
@@ -403,6 +411,8 @@ class Degradation(Transform):
         for pname, lad in self._ladder_on(device).items():
             fresh[pname] = lad[idx]
         fresh.update(self._draw_faults(fresh, B, device))
+        if self.p < 1.0:  # drawn last: at p = 1 the draws are those of an effect without p
+            fresh["active"] = self.rand(B, device) < self.p
         return fresh
 
     def _draw_faults(self, p: dict, B: torch.Size, device) -> dict[str, torch.Tensor]:
@@ -475,8 +485,11 @@ class Degradation(Transform):
             return td
         self._begin_step(st, reset)
         plain = _plain(td)
+        active = st.get("active")
         for in_key, out_key, x in pairs:
             y = self._degrade(x, in_key, st, reset)
+            if active is not None:  # p < 1: the envs whose effect is off this episode keep the clean reading
+                y = torch.where(self.bview(active, x, len(st["_B"])), y, x) if active.ndim else (y if bool(active) else x)
             if plain is not None and isinstance(out_key, str) and y.shape == x.shape and y.dtype == x.dtype:
                 plain[out_key] = y  # same shape, dtype and device as the reading it replaces: no checks needed
             else:
@@ -614,7 +627,7 @@ class Degradation(Transform):
     def __repr__(self) -> str:
         lo, hi = self.severity_range
         sev = lo if lo == hi else (lo, hi)
-        extra = "".join(f", {k}={v!r}" for k, v in self.overrides.items())
+        extra = "".join(f", {k}={v!r}" for k, v in self.overrides.items()) + (f", p={self.p}" if self.p < 1.0 else "")
         keys = self.in_keys if self.in_keys == self.out_keys else f"{self.in_keys}->{self.out_keys}"
         return f"{type(self).__name__}(severity={sev}, keys={keys}{extra})"
 
