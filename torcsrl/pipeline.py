@@ -594,8 +594,8 @@ def _check_degradation(deg: Any, sensors: Any, out: list[str]) -> None:
         out.append(f"degradation: expected a mapping {{severity, stack}}, got {deg!r}")
         return
     for k in deg:
-        if k not in ("severity", "stack"):
-            out.append(unknown_key(f"degradation.{k}", k, ("severity", "stack"), "conf/degradation/none.yaml"))
+        if k not in ("severity", "p", "stack"):
+            out.append(unknown_key(f"degradation.{k}", k, ("severity", "p", "stack"), "conf/degradation/none.yaml"))
     _severity_ok(deg.get("severity"), "degradation.severity", out)
     stack = deg.get("stack") or {}
     if not isinstance(stack, Mapping):
