@@ -7,6 +7,25 @@ from torcsrl.envs.toy import make_toy_env
 from torcsrl.nets import Critic, ObsEncoder, RunningNorm, TanhGaussianActor
 
 
+def test_state_independent_std_starts_per_action_dimension():
+    """``log_std_init``: one number for every action, or one per action (a quieter steer than pedal); a list of the
+    wrong length is refused in one line."""
+    env = make_toy_env()
+    low, high = torch.full((2,), -1.0), torch.full((2,), 1.0)
+
+    def actor(init):
+        return TanhGaussianActor(ObsEncoder(env.observation_spec, ["rangefinder", "state"]), low, high, (8,),
+                                 state_dependent_std=False, log_std_init=init)
+
+    torch.testing.assert_close(actor(-0.5).log_std.data, torch.tensor([-0.5, -0.5]))
+    a = actor([-1.0, 0.0])
+    torch.testing.assert_close(a.log_std.data, torch.tensor([-1.0, 0.0]))
+    _, std = a.dist(torch.rand(3, 19) * 50, torch.randn(3, 6))
+    torch.testing.assert_close(std, torch.tensor([[0.3679, 1.0]]).expand(3, 2), rtol=1e-4, atol=1e-4)
+    with pytest.raises(ValueError, match=r"one number, or one per action dimension \(2\)"):
+        actor([0.0, 0.0, 0.0])
+
+
 @pytest.mark.parametrize("bounds", [(-1.0, 1.0), (-2.0, 0.5)])
 @pytest.mark.parametrize("state_dependent_std", [True, False])
 def test_tanh_gaussian_log_prob_equals_torchrl_tanh_normal(bounds, state_dependent_std):

@@ -81,7 +81,12 @@ def make_actor(cfg: Any, env: EnvBase, obs_keys: list[str]):
     """pi(a|s): tanh-Gaussian in the env's bounds, one learnt std per action dimension; ``actor(*obs)`` is its mean action."""
     low, high = _build.action_bounds(env)
     return TanhGaussianActor(_build.encoder(cfg, env, obs_keys, obs_norm=bool(cfg.obs_norm)), low, high, tuple(cfg.actor_hidden),
-                             state_dependent_std=False, log_std_init=float(cfg.log_std_init))
+                             state_dependent_std=False, log_std_init=_log_std_init(cfg.log_std_init))
+
+
+def _log_std_init(v: Any) -> float | list[float]:
+    """``algo.log_std_init``: one number, or one per action dimension (a list)."""
+    return float(v) if isinstance(v, (int, float)) else [float(x) for x in v]
 
 
 def make_critic(cfg: Any, env: EnvBase, obs_keys: list[str]):

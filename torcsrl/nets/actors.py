@@ -100,11 +100,13 @@ class TanhGaussianActor(nn.Module):
         state_dependent_std: the std is an output of the network (SAC, log std squashed into
             ``[log_std_min, log_std_max]`` as in CleanRL/SpinningUp) or one learnt parameter per action dimension
             (PPO, SB3's and TorchRL's default for PPO; starts at ``exp(log_std_init)``).
-        log_std_min, log_std_max, log_std_init: bounds and start of ``log std`` [log action units].
+        log_std_min, log_std_max, log_std_init: bounds and start of ``log std`` [log action units]; ``log_std_init``
+            may give one start per action dimension (e.g. ``[-1.0, 0.0]``: a quieter steer than pedal).
     """
 
     def __init__(self, encoder: ObsEncoder, action_low: torch.Tensor, action_high: torch.Tensor, hidden: Sequence[int],
-                 state_dependent_std: bool = True, log_std_min: float = -5.0, log_std_max: float = 2.0, log_std_init: float = 0.0):
+                 state_dependent_std: bool = True, log_std_min: float = -5.0, log_std_max: float = 2.0,
+                 log_std_init: float | Sequence[float] = 0.0):
         super().__init__()
         self.encoder = encoder
         n = action_low.numel()
@@ -112,7 +114,10 @@ class TanhGaussianActor(nn.Module):
         self.state_dependent_std = bool(state_dependent_std)
         self.net = mlp(encoder.out_dim, hidden, 2 * n if self.state_dependent_std else n)
         if not self.state_dependent_std:
-            self.log_std = nn.Parameter(torch.full((n,), float(log_std_init)))
+            init = torch.as_tensor(log_std_init, dtype=torch.float32)
+            if init.numel() not in (1, n):
+                raise ValueError(f"log_std_init={list(init.flatten().tolist())}: one number, or one per action dimension ({n})")
+            self.log_std = nn.Parameter(init.flatten().expand(n).clone() if init.numel() == 1 else init.flatten().clone())
         self.log_std_min, self.log_std_max = float(log_std_min), float(log_std_max)
         self.register_buffer("a_mid", ((action_high + action_low) / 2).float())
         self.register_buffer("a_half", ((action_high - action_low) / 2).float())

@@ -254,7 +254,7 @@ def _shift_pads(algo: Any) -> tuple[int, int]:
 
 def _check_algo(algo: Any, out: list[str]) -> None:
     ref = _load_ref("algo/base.yaml")
-    per_dim = tuple(f"algo.exploration.{k}" for k in ("sigma", "theta", "mu"))
+    per_dim = (*(f"algo.exploration.{k}" for k in ("sigma", "theta", "mu")), "algo.log_std_init")
     _against(ref, algo, "algo", out, source="conf/algo/base.yaml", per_dim=per_dim, skip=("algo.encoder.augment_shift",))
     try:
         _shift_pads(algo)

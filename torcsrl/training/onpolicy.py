@@ -215,10 +215,12 @@ def log_std_schedule(actor, algo: DictConfig, total: int):
     if not isinstance(log_std, torch.nn.Parameter):
         raise ValueError("algo.log_std_end: the actor has no state-independent log std to schedule; allowed: null")
     log_std.requires_grad_(False)
-    start, end = float(algo.log_std_init), float(end)
+    init = algo.log_std_init
+    start = torch.as_tensor([float(init)] if isinstance(init, (int, float)) else [float(x) for x in init]).expand_as(log_std)
+    end = float(end)
 
     def set_std(frames: int) -> None:
-        log_std.fill_(start + (end - start) * min(1.0, frames / max(1, total)))
+        log_std.copy_(start + (end - start) * min(1.0, frames / max(1, total)))
 
     return set_std
 
