@@ -214,3 +214,29 @@ def test_generalise_rl_preset_trains_on_the_race_env(tmp_path, preset):
     r = train(cfg)
     assert r["frames"] >= 200 and r["updates"] > 0 and Path(r["checkpoint"]).is_file()
     assert read_csv_metric(tmp_path, "loss/smooth_temporal") and read_csv_metric(tmp_path, "eval/oval/laps")
+
+
+def test_ppo_starts_from_a_deterministic_imitation_student():
+    """``init.actor`` of a deterministic student (the shipped DAgger driver) into PPO's tanh-Gaussian actor: the student's
+    network becomes the mean, so PPO's deterministic action is the student's action; the std starts at log_std_init."""
+    from torcsrl import agents
+    from torcsrl.pipeline import actor_obs_keys, make_train_env
+    from torcsrl.policies import CheckpointPolicy
+    from torcsrl.training.common import make_networks
+
+    asset = ROOT / "torcsrl" / "assets" / "reference_dagger.pt"
+    cfg = cfg_for("experiment=generalise_rl_stable", "algo.obs_norm=false", f"init.actor={asset}", "algo.log_std_init=-1.5",
+                  "algo.actor_hidden=[256,256]",
+                  "env.num_cars=2", env="race")
+    env = make_train_env(cfg)
+    try:
+        keys = actor_obs_keys(cfg)
+        actor, _, _ = make_networks(cfg, agents.get("ppo"), env, keys, torch.device("cpu"))
+    finally:
+        env.close()
+    student = CheckpointPolicy(asset).actor
+    torch.manual_seed(0)
+    obs = [torch.rand(16, 19) * 100, torch.randn(16, 11)]
+    with torch.no_grad():
+        torch.testing.assert_close(actor(*obs), student(*obs))
+    torch.testing.assert_close(actor.log_std.data, torch.full((2,), -1.5))

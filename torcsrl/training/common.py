@@ -240,6 +240,11 @@ def init_actor(spec: str, actor: torch.nn.Module, cfg: DictConfig, env: EnvBase,
     else:
         prefix = "actor_network_params."
         sd = {k[len(prefix):]: v for k, v in (ck.get("loss") or {}).items() if k.startswith(prefix)}
+    own_std = getattr(actor, "log_std", None)
+    if isinstance(own_std, torch.nn.Parameter) and "log_std" not in sd:
+        # a deterministic actor (TD3, BC, DAgger) starting PPO's tanh-Gaussian: its network is the mean (the same
+        # tanh squash onto the bounds); the std starts where this run's algo.log_std_init puts it
+        sd = {**sd, "log_std": own_std.detach().clone()}
     try:
         actor.load_state_dict(sd, strict=True)
     except RuntimeError as err:
