@@ -199,7 +199,7 @@ def test_ppo_caps_temporal_term_pulls_consecutive_mean_actions_together():
     env.close()
 
 
-@pytest.mark.parametrize("preset", ["generalise_rl", "generalise_rl_stable"])
+@pytest.mark.parametrize("preset", ["generalise_rl", "generalise_rl_stable", "generalise_rl_student"])
 def test_generalise_rl_preset_trains_on_the_race_env(tmp_path, preset):
     """``experiment=generalise_rl`` (and its stable variant) with a tiny budget: its levers (linear rates, KL stop, CAPS)
     run together on the procedural pool with surfaces drawn per episode, validation per training track, and a
@@ -207,7 +207,10 @@ def test_generalise_rl_preset_trains_on_the_race_env(tmp_path, preset):
     if preset == "generalise_rl_stable":  # the variant changes only the update's size (its minibatch is shrunk below)
         c = cfg_for(f"experiment={preset}")
         assert (c.algo.epochs, c.algo.actor_lr, c.algo.clip_epsilon) == (4, 1e-4, 0.1)  # (minibatch and budget: smoke-sized here)
-    cfg = cfg_for(f"experiment={preset}", f"run_dir={tmp_path}", "total_frames=200", "env.num_cars=2", "algo.rollout_steps=50",
+    if preset == "generalise_rl_student":  # the shipped student as the start: its network's size, not the smoke one
+        assert cfg_for(f"experiment={preset}").init.actor.endswith("reference_dagger.pt")
+    student = ["algo.actor_hidden=[256,256]"] if preset == "generalise_rl_student" else []
+    cfg = cfg_for(f"experiment={preset}", *student, f"run_dir={tmp_path}", "total_frames=200", "env.num_cars=2", "algo.rollout_steps=50",
                   "algo.batch_size=32", "env.procedural.pool=2", "env.max_steps=40", "eval.env.track=oval", "eval.every_episodes=1", "eval.max_steps=30",
                   "logger.every_frames=100", "checkpoint.every_frames=100", env="race")
     assert cfg.algo.lr_schedule == "linear" and cfg.algo.target_kl == 0.02 and cfg.algo.smooth.temporal == 0.5
