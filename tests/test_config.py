@@ -282,6 +282,8 @@ def test_severity_out_of_range():
     msg = one_problem("degradation=rangefinder.fog", "degradation.stack.rangefinder_fog.severity=[4,9]")
     assert "degradation.stack.rangefinder_fog.severity" in msg and "1..5" in msg
     assert "preset severity must be an int" in one_problem("degradation=weather.rain", "degradation.severity=[1,3]")
+    msg = one_problem("degradation=randomised", "degradation.p=2")  # one line, not one per stack entry
+    assert msg.count("\n") == 0 and "degradation.p=2: the probability" in msg and "allowed: 0 < p <= 1" in msg
 
 
 def test_unknown_names_list_the_allowed_ones():

@@ -597,6 +597,10 @@ def _check_degradation(deg: Any, sensors: Any, out: list[str]) -> None:
         if k not in ("severity", "p", "stack"):
             out.append(unknown_key(f"degradation.{k}", k, ("severity", "p", "stack"), "conf/degradation/none.yaml"))
     _severity_ok(deg.get("severity"), "degradation.severity", out)
+    prob = deg.get("p")
+    if prob is not None and (isinstance(prob, bool) or not is_number(prob) or not 0.0 < float(prob) <= 1.0):
+        out.append(f"degradation.p={prob!r}: the probability that each effect of the stack is on in an episode; allowed: 0 < p <= 1")
+        return  # the entries that refer to it would each repeat the line
     stack = deg.get("stack") or {}
     if not isinstance(stack, Mapping):
         out.append(f"degradation.stack: expected a mapping of named entries (name: {{name, severity, ...}}), got {stack!r}")
