@@ -102,10 +102,16 @@ def test_race_env_sac_with_demonstrations_and_smoothness_and_ppo_evaluate_like_t
     (["algo=td3", "algo.log_std_end=-1"], "algo.log_std_end=-1: the policy-std schedule applies to algo=ppo only; allowed: null"),
     (["algo=ppo", "algo.log_std_end=-9"], "algo.log_std_end=-9: the policy's log std at total_frames; allowed: a number in [-5, 2]"),
 ])
+
 def test_options_that_do_not_apply_are_refused_in_one_line(overrides, line):
     with pytest.raises(ConfigError) as err:
         validate(cfg_for(*overrides))
     assert str(err.value).count("\n") == 0 and line in str(err.value)
+
+
+def test_a_log_std_list_of_the_wrong_length_is_refused_in_one_line(tmp_path):
+    with pytest.raises(ValueError, match=r"^algo.log_std_init=\[0.0, 0.0, 0.0\]: one number, or one per action dimension \(2\)$"):
+        train(cfg_for("algo=ppo", *PPO, "algo.log_std_init=[0,0,0]", f"run_dir={tmp_path}", "total_frames=100"))
 
 
 def test_ppo_linear_learning_rate_kl_early_stop_and_smoothness(tmp_path):

@@ -81,12 +81,16 @@ def make_actor(cfg: Any, env: EnvBase, obs_keys: list[str]):
     """pi(a|s): tanh-Gaussian in the env's bounds, one learnt std per action dimension; ``actor(*obs)`` is its mean action."""
     low, high = _build.action_bounds(env)
     return TanhGaussianActor(_build.encoder(cfg, env, obs_keys, obs_norm=bool(cfg.obs_norm)), low, high, tuple(cfg.actor_hidden),
-                             state_dependent_std=False, log_std_init=_log_std_init(cfg.log_std_init))
+                             state_dependent_std=False, log_std_init=log_std_start(cfg.log_std_init, low.numel()))
 
 
-def _log_std_init(v: Any) -> float | list[float]:
-    """``algo.log_std_init``: one number, or one per action dimension (a list)."""
-    return float(v) if isinstance(v, (int, float)) else [float(x) for x in v]
+def log_std_start(v: Any, action_dim: int) -> torch.Tensor:
+    """``algo.log_std_init`` as ``[action_dim]`` floats: one number for every action, or one per action (a list of
+    ``action_dim``); ValueError in one line otherwise. The actor's start, and the start of ``algo.log_std_end``'s schedule."""
+    vals = [float(v)] if isinstance(v, (int, float)) else [float(x) for x in v]
+    if len(vals) not in (1, action_dim):
+        raise ValueError(f"algo.log_std_init={vals}: one number, or one per action dimension ({action_dim})")
+    return torch.tensor(vals * action_dim if len(vals) == 1 else vals)
 
 
 def make_critic(cfg: Any, env: EnvBase, obs_keys: list[str]):

@@ -39,6 +39,7 @@ from torchrl.envs.utils import ExplorationType
 
 from torcsrl import agents
 from torcsrl.agents.exploration import DeviceActorModule
+from torcsrl.agents.ppo import log_std_start
 from torcsrl.pipeline import actor_obs_keys, expected_meta, make_eval_envs, make_train_env, pipeline_record
 from torcsrl.policies import load_policy
 from torcsrl.training.common import (
@@ -215,9 +216,7 @@ def log_std_schedule(actor, algo: DictConfig, total: int):
     if not isinstance(log_std, torch.nn.Parameter):
         raise ValueError("algo.log_std_end: the actor has no state-independent log std to schedule; allowed: null")
     log_std.requires_grad_(False)
-    init = algo.log_std_init
-    start = torch.as_tensor([float(init)] if isinstance(init, (int, float)) else [float(x) for x in init]).expand_as(log_std)
-    end = float(end)
+    start, end = log_std_start(algo.log_std_init, log_std.numel()), float(end)
 
     def set_std(frames: int) -> None:
         log_std.copy_(start + (end - start) * min(1.0, frames / max(1, total)))
