@@ -385,8 +385,8 @@ def _check_frame_stack(c: Mapping, out: list[str]) -> None:
 
 
 def _check_state_history(c: Mapping, out: list[str]) -> None:
-    """``state_history``: an integer 1..100; above 1 the actor must see ``state`` or ``telemetry`` (what is stacked), and
-    not with PPO (its value network sees one reading)."""
+    """``state_history``: an integer 1..100; above 1 the actor must see ``state`` or ``telemetry`` (what is stacked); PPO's
+    actor and value network both see the history."""
     _check_stack(c, out, "state_history", 100, "readings of the on-board state", HISTORY_KEYS, "the on-board state",
                  "sensors with state or telemetry", "histories")
 
@@ -394,7 +394,7 @@ def _check_state_history(c: Mapping, out: list[str]) -> None:
 def _check_stack(c: Mapping, out: list[str], name: str, most: int, unit: str, stackable: tuple[str, ...], what: str,
                  sensors_hint: str, plural: str) -> None:
     """A stack setting ``name`` (``frame_stack``, ``state_history``): an integer 1..``most``; above 1 the actor must see
-    one of ``stackable`` and the algo must not be PPO."""
+    one of ``stackable`` (and, for ``frame_stack``, the algo must not be PPO)."""
     k = c.get(name, 1)
     if k is None or isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= most:
         out.append(f"{name}: expected an integer from 1 to {most} ({unit}), got {k!r}")
@@ -406,7 +406,7 @@ def _check_stack(c: Mapping, out: list[str], name: str, most: int, unit: str, st
     if not any(x in stackable for x in keys):
         out.append(f"{name}={k} stacks {what} ({', '.join(stackable)}); the actor sees {keys}: allowed: {name}=1, or {sensors_hint}")
     algo = (c.get("algo") or {}).get("name") if isinstance(c.get("algo"), Mapping) else None
-    if algo == "ppo":
+    if algo == "ppo" and name == "frame_stack":
         out.append(f"{name}={k}: algo=ppo is not built for {plural} yet; allowed: {name}=1 with algo=ppo, or an "
                    "off-policy or imitation algo (ddpg, td3, d4pg, sac, bc, dagger)")
 

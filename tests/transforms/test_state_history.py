@@ -72,7 +72,8 @@ def test_demonstrations_of_another_history_are_refused_in_one_line(tmp_path):
 @pytest.mark.parametrize("over, msg", [
     (["state_history=0"], "state_history: expected an integer from 1 to 100"),
     (["state_history=4", "env.sensors=[rangefinder]"], r"state_history=4 stacks the on-board state \(state, telemetry\)"),
-    (["state_history=4", "algo=ppo"], "state_history=4: algo=ppo is not built for histories yet"),
+    (["state_history=4", "algo=ppo", "algo.grip_estimate=1.0"], r"algo.grip_estimate=1.0: algo=ppo keeps the grip head of the student"),
+    (["frame_stack=4", "algo=ppo", "env.sensors=[camera]"], "frame_stack=4: algo=ppo is not built for frame stacks yet"),
 ])
 def test_a_history_the_actor_cannot_have_is_one_line(over, msg):
     import re
@@ -81,3 +82,46 @@ def test_a_history_the_actor_cannot_have_is_one_line(over, msg):
 
     found = problems(compose_config(*RACE, *over))
     assert any(re.search(msg, line) for line in found), found
+
+
+def test_ppo_trains_on_a_state_history_from_a_grip_student(tmp_path):
+    """PPO with ``state_history=4`` started from a DAgger grip student (``init.actor``; the head reads the history, the
+    MLP the newest 2 readings): before any update its deterministic action is the student's; PPO's updates move the
+    policy but not the grip head (its estimate enters the MLP detached); its checkpoint keeps its own history and
+    drives the plain one-reading env as the training env fed it."""
+    from torcsrl import agents
+    from torcsrl.pipeline import actor_obs_keys, make_train_env
+    from torcsrl.policies import CheckpointPolicy
+    from torcsrl.training import train
+    from torcsrl.training.common import make_networks
+    from torcsrl.utils.checkpoint import latest_checkpoint, load_checkpoint
+
+    grip = ["state_history=4", "algo.grip_estimate=1.0", "algo.grip_inputs=history", "algo.actor_readings=2", "algo.actor_hidden=[32,32]"]
+    train(compose_config(*RACE, "algo=dagger", *grip, "demos.frames=120", "algo.bc_steps=10", "demos.dagger_rounds=0",
+                         f"run_dir={tmp_path / 'student'}"))
+    student_ck = latest_checkpoint(tmp_path / "student" / "checkpoints")
+    student = CheckpointPolicy(student_ck)
+    ppo = [*RACE, "algo=ppo", *grip, f"init.actor={student_ck}", "algo.obs_norm=false", "algo.log_std_init=-1.6", "env.num_cars=2",
+           "algo.rollout_steps=20", "algo.batch_size=20", "algo.epochs=2"]
+    cfg = compose_config(*ppo, "total_frames=80", f"run_dir={tmp_path / 'ppo'}")
+    env = make_train_env(cfg)
+    try:
+        actor, _, _ = make_networks(cfg, agents.get("ppo"), env, actor_obs_keys(cfg), torch.device("cpu"))
+        obs = env.reset()
+        x = [obs.get(k) for k in actor_obs_keys(cfg)]
+        with torch.no_grad():
+            torch.testing.assert_close(actor(*x), student.actor(*x))
+    finally:
+        env.close()
+    res = train(cfg)
+    assert res["updates"] > 0
+    ck = load_checkpoint(res["checkpoint"])
+    sd = ck["actor"]
+    for k, v in student.actor.state_dict().items():
+        if k.startswith("grip_head."):
+            assert torch.equal(sd[k], v), k  # the head as loaded
+    assert any(not torch.equal(sd[k], v) for k, v in student.actor.state_dict().items() if k.startswith("net."))  # the policy moved
+    pol = CheckpointPolicy(res["checkpoint"])
+    assert pol.state_history == 4 and pol.actor.grip_head is not None
+    one_car = compose_config(*ppo, "env.num_cars=1", f"run_dir={tmp_path / 'ppo'}")
+    assert_policy_history_matches_training_env(pol, one_car, 9, action=lambda t: (0.1 * (t % 3 - 1), 0.8))

@@ -78,10 +78,17 @@ class PPOPolicy(TensorDictModuleBase):
 
 
 def make_actor(cfg: Any, env: EnvBase, obs_keys: list[str]):
-    """pi(a|s): tanh-Gaussian in the env's bounds, one learnt std per action dimension; ``actor(*obs)`` is its mean action."""
+    """pi(a|s): tanh-Gaussian in the env's bounds, one learnt std per action dimension; ``actor(*obs)`` is its mean action.
+    With ``algo.grip_estimate > 0`` it has a grip student's shape (:func:`torcsrl.agents._build.actor`): the grip head
+    and input selections of ``algo.grip_*`` / ``actor_readings``, to be loaded from the student (``init.actor``)."""
     low, high = _build.action_bounds(env)
-    return TanhGaussianActor(_build.encoder(cfg, env, obs_keys, obs_norm=bool(cfg.obs_norm)), low, high, tuple(cfg.actor_hidden),
-                             state_dependent_std=False, log_std_init=log_std_start(cfg.log_std_init, low.numel()))
+    enc = _build.encoder(cfg, env, obs_keys, obs_norm=bool(cfg.obs_norm))
+    grip: dict = {}
+    if float(cfg.get("grip_estimate", 0.0) or 0.0) > 0:  # a grip student's shape (init.actor), its head kept as loaded
+        grip_in, policy_in = _build.grip_layout(enc, str(cfg.get("grip_inputs", "all")), cfg.get("actor_readings"))
+        grip = dict(grip_hidden=tuple(cfg.get("grip_hidden", (64,))), grip_inputs=grip_in, policy_inputs=policy_in)
+    return TanhGaussianActor(enc, low, high, tuple(cfg.actor_hidden), state_dependent_std=False,
+                             log_std_init=log_std_start(cfg.log_std_init, low.numel()), **grip)
 
 
 def log_std_start(v: Any, action_dim: int) -> torch.Tensor:

@@ -358,9 +358,13 @@ def _check_algo_fit(c: Mapping, out: list[str]) -> None:
             out.append(f"algo.{key}={w} weighs the rows by {by}, which the actor does not read (env={env_name}, its keys {keys}); "
                        f"allowed: 1.0, or {allowed}")
     grip = algo.get("grip_estimate", 0.0)
-    if is_number(grip) and grip > 0 and name not in ("bc", "dagger"):
+    init_actor = (c.get("init") or {}).get("actor") if isinstance(c.get("init"), Mapping) else None
+    if is_number(grip) and grip > 0 and name == "ppo" and not init_actor:
+        out.append(f"algo.grip_estimate={grip}: algo=ppo keeps the grip head of the student it starts from (the head learns from "
+                   "demonstrations' privileged mu, which PPO has none of); allowed: 0, or init.actor=<a grip student's checkpoint>")
+    elif is_number(grip) and grip > 0 and name not in ("bc", "dagger", "ppo"):
         out.append(f"algo.grip_estimate={grip}: the grip head learns from the demonstrations' privileged mu, which only algo=bc / "
-                   f"dagger fit (algo={name}); allowed: 0, or algo=bc / dagger")
+                   f"dagger fit (algo={name}); allowed: 0, algo=bc / dagger, or algo=ppo started from a grip student (init.actor)")
     gin, readings, k = algo.get("grip_inputs", "all"), algo.get("actor_readings"), c.get("state_history", 1)
     if gin not in ("all", "history"):
         out.append(f"algo.grip_inputs={gin!r}; allowed: all (every feature), history (the state history only)")
