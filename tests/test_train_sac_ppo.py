@@ -249,3 +249,31 @@ def test_ppo_starts_from_a_deterministic_imitation_student():
     with torch.no_grad():
         torch.testing.assert_close(actor(*obs), student(*obs))
     torch.testing.assert_close(actor.log_std.data, torch.full((2,), -1.5))
+
+
+def test_ppo_with_a_privileged_critic_reads_the_road_in_its_value_network_only(tmp_path):
+    """``critic_obs_keys=[rangefinder,state,road]`` with algo=ppo: the training env adds the privileged ``road`` sensor,
+    the value network reads it (and its running statistics cover it), the actor and the exported driver do not: the
+    checkpoint drives an env without it."""
+    from torcsrl.policies import CheckpointPolicy
+    from torcsrl.utils.checkpoint import load_checkpoint
+
+    cfg = cfg_for("algo=ppo", *PPO, "env.num_cars=2", "total_frames=200", "critic_obs_keys=[rangefinder,state,road]",
+                  f"run_dir={tmp_path}", env="race")
+    r = train(cfg)
+    assert r["updates"] > 0 and math.isfinite(r["loss/critic"])
+    ck = load_checkpoint(r["checkpoint"])
+    first = {k: v for k, v in ck["critic"].items() if k.endswith("net.0.weight")}
+    actor_first = {k: v for k, v in ck["actor"].items() if k.endswith("net.0.weight") and not k.startswith("grip")}
+    assert next(iter(first.values())).shape[1] == next(iter(actor_first.values())).shape[1] + 6  # the road's 6 slots
+    pol = CheckpointPolicy(r["checkpoint"])
+    assert list(pol.obs_keys) == ["rangefinder", "state"]
+    from torcsrl.envs import make_env
+
+    env = make_env(track="oval", sensors=("rangefinder", "state"), seed=0)
+    try:
+        pol.check_env(env)
+        td = env.reset()
+        assert pol(td)["action"].shape == (2,)
+    finally:
+        env.close()

@@ -374,7 +374,7 @@ def _check_critic_obs_keys(c: Mapping, out: list[str]) -> None:
         out.append(f"critic_obs_keys: unknown sensor(s) {bad}; allowed: {', '.join(SENSOR_NAMES)}")
     algo = (c.get("algo") or {}).get("name") if isinstance(c.get("algo"), Mapping) else None
     if algo in IMITATION:
-        out.append(f"critic_obs_keys: algo={algo} has no critic; allowed: null, or an actor-critic algo (ddpg, td3, d4pg, sac)")
+        out.append(f"critic_obs_keys: algo={algo} has no critic; allowed: null, or an actor-critic algo (ddpg, td3, d4pg, sac, ppo)")
 
 
 def _check_frame_stack(c: Mapping, out: list[str]) -> None:

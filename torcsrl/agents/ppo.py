@@ -108,13 +108,11 @@ def make_critic(cfg: Any, env: EnvBase, obs_keys: list[str]):
 def make_loss(cfg: Any, actor, critic, env: EnvBase, obs_keys: list[str], critic_obs_keys: list[str] | None = None):
     """TorchRL's ``ClipPPOLoss`` (clipped surrogate, l2 value loss, entropy bonus, advantages normalised per minibatch)
     on tensors (:class:`~torcsrl.objectives.ppo.ClipPPOLoss`), with TorchRL's ``GAE(gamma, gae_lambda)`` as its value
-    estimator."""
-    if critic_obs_keys is not None:
-        raise ValueError("algo=ppo: the value network sees the actor's observations; allowed: critic_obs_keys=null")
+    estimator; ``critic_obs_keys``: what the value network sees when not the actor's keys (an asymmetric critic)."""
     low, high = _build.action_bounds(env)
     loss = ClipPPOLoss(actor, critic, obs_keys=list(obs_keys), action_low=low, action_high=high, clip_epsilon=float(cfg.clip_epsilon),
                        entropy_coeff=float(cfg.entropy_coef), critic_coeff=float(cfg.value_coef), loss_critic_type="l2",
-                       normalize_advantage=True)
+                       normalize_advantage=True, critic_obs_keys=None if critic_obs_keys is None else list(critic_obs_keys))
     loss.make_value_estimator(ValueEstimators.GAE, gamma=float(cfg.gamma), lmbda=float(cfg.gae_lambda))
     sm = getattr(cfg, "smooth", None)
     loss.with_next = sm is not None and float(sm.temporal) > 0  # the CAPS temporal term reads the next observations

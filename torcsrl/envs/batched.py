@@ -68,7 +68,7 @@ class TorchRaceEnv(EnvBase):
             full = (*b, *shape)
             if key == "rangefinder":
                 obs[key] = Bounded(-1.0, c.rangefinder.range_m, full, dtype=torch.float32, device=self.device)
-            elif key in ("state", "telemetry"):
+            elif key in ("state", "telemetry", "road"):
                 obs[key] = Unbounded(full, dtype=torch.float32, device=self.device)
             elif key == "opponents":
                 obs[key] = Bounded(0.0, OPPONENT_RANGE_M, full, dtype=torch.float32, device=self.device)

@@ -25,6 +25,12 @@ Normalised versions (as the studies fed their networks) divide each key by the s
 speeds / 300 km/h, wheel spin / 150 rad/s, rpm / 10,000, gear / 6 — which maps a lap at racing
 speed into about [−1, 1]. The transform that does it is :func:`torcsrl.transforms.normalize_transform`.
 
+**road** ``[6]`` float32, slots :data:`ROAD_SLOTS`: what the track map and the tyres know and no on-board sensor
+reads — the friction coefficient under the wheels (``surfaceMu``, their mean) and the mean curvature of the centreline
+over five stretches ahead of the car (0–20, 20–50, 50–100, 100–150, 150–200 m along the track) [1/m], > 0 a bend to
+the left: the heading change over the stretch divided by its length. A privileged sensor: for an asymmetric critic
+(``critic_obs_keys``), not for a driver. Normalised: mu as is, curvature x 20 m (a 20 m radius reads 1).
+
 **privileged** ``[22]`` (demonstration rows only, :data:`PRIVILEGED_SLOTS`): a teacher's clean view of the road.
 """
 
@@ -74,7 +80,13 @@ STATE_BOUNDS: dict[str, tuple[float, float]] = {
     "wheelSpinVel_rl": (-1e3, 1e3), "wheelSpinVel_rr": (-1e3, 1e3), "rpm": (0.0, 2e4), "gear": (0.0, 10.0),
 }
 MS_TO_KMH = 3.6
-SENSOR_NAMES: tuple[str, ...] = ("rangefinder", "state", "telemetry", "pixels", "depth", "opponents")
+SENSOR_NAMES: tuple[str, ...] = ("rangefinder", "state", "telemetry", "pixels", "depth", "opponents", "road")
+#: Stretches ahead of the car [m, m] whose mean centreline curvature the ``road`` sensor reads.
+ROAD_AHEAD_M: tuple[tuple[float, float], ...] = ((0.0, 20.0), (20.0, 50.0), (50.0, 100.0), (100.0, 150.0), (150.0, 200.0))
+#: Named slots of the privileged ``road`` observation (an asymmetric critic's): grip under the wheels, bends ahead [1/m].
+ROAD_SLOTS: tuple[str, ...] = ("surfaceMu",) + tuple(f"curv_{int(a)}_{int(b)}m" for a, b in ROAD_AHEAD_M)
+#: Divisors that bring each road slot to about [-1, 1]: mu as is, curvature x 20 m.
+ROAD_SCALE: tuple[float, ...] = (1.0,) + (0.05,) * len(ROAD_AHEAD_M)
 #: What ``privileged`` holds per demonstration row: the teacher's clean view of the road, normalised to ~[-1, 1] —
 #: the 19 rangefinder beams / 200 m (-1/200 off track), the angle to the track axis / pi, trackPos, and the friction
 #: under the wheels ``info/surfaceMu``. A camera student regresses it as an auxiliary target (``algo.aux_privileged``).
@@ -207,3 +219,16 @@ class Rangefinder:
             except p.error:
                 pass
             self.client = None
+
+
+def road_reading(track, s: float, mu: float) -> list[float]:
+    """One car's ``road`` reading (:data:`ROAD_SLOTS`): ``mu`` and the mean curvature [1/m] of ``track``'s centreline
+    over each stretch of :data:`ROAD_AHEAD_M` ahead of arc length ``s`` [m] (heading change / stretch length)."""
+    edges = sorted({x for ab in ROAD_AHEAD_M for x in ab})
+    h = track.heading(np.asarray([s + e for e in edges], dtype=np.float64))
+    at = dict(zip(edges, h.tolist()))
+    out = [float(mu)]
+    for a, b in ROAD_AHEAD_M:
+        dh = (at[b] - at[a] + math.pi) % (2 * math.pi) - math.pi
+        out.append(dh / (b - a))
+    return out

@@ -207,7 +207,9 @@ class ClipPPOLoss(_TorchRLClipPPOLoss, metaclass=DirectLossMeta):
         critic_network: V(s) (:class:`~torcsrl.nets.ValueNet`: ``forward(*obs) -> [B, 1]``).
 
     Keyword Args:
-        obs_keys: observation keys, in the order both networks take them.
+        obs_keys: observation keys, in the order the actor takes them (and the value network, unless ``critic_obs_keys``).
+        critic_obs_keys: what the value network sees when it differs from the actor's (an asymmetric critic: e.g. the
+            privileged ``road`` sensor beside the actor's keys; only the value estimates and the value loss read it).
         action_low, action_high: action bounds ``[A]`` (the ``TanhNormal``'s).
         clip_epsilon: clip of the probability ratio [-].
         entropy_coeff: weight of the entropy bonus [-].
@@ -218,17 +220,19 @@ class ClipPPOLoss(_TorchRLClipPPOLoss, metaclass=DirectLossMeta):
 
     def __init__(self, actor_network: TanhGaussianActor, critic_network: ValueNet, *, obs_keys: list[str], action_low: torch.Tensor,
                  action_high: torch.Tensor, clip_epsilon: float = 0.2, entropy_coeff: float = 0.0, critic_coeff: float = 1.0,
-                 loss_critic_type: str = "l2", normalize_advantage: bool = True) -> None:
+                 loss_critic_type: str = "l2", normalize_advantage: bool = True, critic_obs_keys: list[str] | None = None) -> None:
         if not hasattr(actor_network, "dist"):
             raise ValueError(f"PPO needs a stochastic actor (TanhGaussianActor); got {type(actor_network).__name__}")
         policy = probabilistic_actor(actor_network, obs_keys, action_low, action_high)
-        super().__init__(policy, ValueOperator(critic_network, in_keys=list(obs_keys)), clip_epsilon=float(clip_epsilon),
+        ckeys = list(critic_obs_keys or obs_keys)
+        super().__init__(policy, ValueOperator(critic_network, in_keys=ckeys), clip_epsilon=float(clip_epsilon),
                          entropy_coeff=float(entropy_coeff), critic_coeff=float(critic_coeff), loss_critic_type=loss_critic_type,
                          normalize_advantage=bool(normalize_advantage))
         # the plain networks (their parameters are the ones TorchRL's functional copies hold): not submodules, so the
         # state dict keeps TorchRL's keys
         self.__dict__["actor"], self.__dict__["critic"] = actor_network, critic_network
         self.obs_keys = list(obs_keys)
+        self.critic_obs_keys = ckeys  # what the value network sees (an asymmetric critic: more than the actor)
         low, high = action_low.to(actor_network.a_mid.device), action_high.to(actor_network.a_mid.device)
         self.squash = SquashedGaussian(low.float(), high.float())
         self.with_next = False  # True: batch() also prepares the next observations (the CAPS temporal term reads them)
@@ -246,7 +250,8 @@ class ClipPPOLoss(_TorchRLClipPPOLoss, metaclass=DirectLossMeta):
         obs = [flat.get(k).to(dev) for k in self.obs_keys]
         x, log_det = self.squash.preimage(flat.get(keys.action).to(dev))
         nxt = self.actor.encoder.prepare(*[flat.get(("next", k)).to(dev) for k in self.obs_keys]) if self.with_next else ()
-        return PPOBatch(self.actor.encoder.prepare(*obs), self.critic.encoder.prepare(*obs), x, log_det,
+        cobs = obs if self.critic_obs_keys == self.obs_keys else [flat.get(k).to(dev) for k in self.critic_obs_keys]
+        return PPOBatch(self.actor.encoder.prepare(*obs), self.critic.encoder.prepare(*cobs), x, log_det,
                         flat.get(keys.sample_log_prob).to(dev).reshape(-1), flat.get(keys.advantage).to(dev),
                         flat.get(keys.value_target).to(dev), tuple(nxt))
 

@@ -423,8 +423,6 @@ def _check_algo_fit(c: Mapping, out: list[str]) -> None:
         divisors = ", ".join(str(d) for d in range(1, int(cars) + 1) if cars % d == 0)
         out.append(f"collector.num_workers={col['num_workers']}: algo=ppo splits env.num_cars={cars} cars evenly over the worker "
                    f"processes; allowed: a divisor of {cars} ({divisors}), or 0")
-    if c.get("critic_obs_keys"):
-        out.append("critic_obs_keys: algo=ppo's value network sees the actor's observations; allowed: null")
     try:
         shifted = any(_shift_pads(algo))
     except ValueError:

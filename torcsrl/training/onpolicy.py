@@ -107,7 +107,7 @@ def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     std_schedule = log_std_schedule(actor, cfg.algo, total)
     std_schedule(counters.frames)  # the first rollout's std (a resumed run: the std its next rollout had)
     log_every, eval_every, ckpt_every = int(cfg.logger.every_frames), int(cfg.eval.every_episodes), int(cfg.checkpoint.every_frames) or total
-    encoders = [m.encoder for m in (actor, critic) if m.encoder.norm is not None]
+    encoders = [(m.encoder, keys) for m, keys in ((actor, obs_keys), (critic, loss.critic_obs_keys)) if m.encoder.norm is not None]
     last: dict[str, Any] = {}
     eval_metrics: dict[str, float] = {}
     window = TrainWindow(counters)
@@ -130,8 +130,8 @@ def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             # update: epochs of shuffled minibatches of the rollout, then the observation statistics and the workers' policies
             set_learning_rates(optim, base_lrs, str(cfg.algo.get("lr_schedule", "constant")), counters.frames - data.numel(), total)
             last = update(agent, hot, loss, optim, data, epochs, minibatch, counters, target_kl) or last
-            for enc in encoders:
-                enc.update_norm(*[data.get(k) for k in obs_keys])
+            for enc, keys in encoders:
+                enc.update_norm(*[data.get(k) for k in keys])
             std_schedule(counters.frames)  # the next rollout's std, sent with the weights
             collector.update_policy_weights_()
 

@@ -149,6 +149,10 @@ class RaceEnv(gym.Env, EzPickle):
                 obs_spaces[key] = spaces.Box(lo, hi, dtype=np.float32)
             elif key == "opponents":
                 obs_spaces[key] = spaces.Box(0.0, OPPONENT_RANGE_M, shape, np.float32)
+            elif key == "road":  # mu in [0, 2]; a stretch's mean curvature at most pi over its 20 m
+                lim = np.float32(np.pi / 20.0)
+                obs_spaces[key] = spaces.Box(np.array([0.0] + [-lim] * (shape[0] - 1), np.float32),
+                                             np.array([2.0] + [lim] * (shape[0] - 1), np.float32), dtype=np.float32)
             elif key == "pixels":
                 obs_spaces[key] = spaces.Box(0, 255, shape, np.uint8)
             elif key == "depth":
