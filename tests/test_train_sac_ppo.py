@@ -277,3 +277,26 @@ def test_ppo_with_a_privileged_critic_reads_the_road_in_its_value_network_only(t
         assert pol(td)["action"].shape == (2,)
     finally:
         env.close()
+
+
+def test_generalise_grip_presets_train_the_student_then_ppo_past_it(tmp_path):
+    """``experiment=generalise_grip`` (DAgger of the fast grip-aware teacher into a grip student) and
+    ``experiment=generalise_rl_grip`` (PPO from that student's checkpoint) with tiny budgets: the student has a grip head
+    on a 30-reading state history; PPO starts from it, keeps the head, and writes a checkpoint that still has it."""
+    from torcsrl.policies import CheckpointPolicy
+    from torcsrl.utils.checkpoint import latest_checkpoint
+
+    small = ["env.procedural.pool=2", "env.max_steps=40", "eval.env.track=oval", "eval.max_steps=30"]
+    student = cfg_for("experiment=generalise_grip", *small, "demos.frames=120", "demos.episode_steps=60", "algo.bc_steps=10",
+                      "demos.dagger_rounds=1", "demos.dagger_frames=40", f"run_dir={tmp_path / 'grip'}", env="race")
+    assert student.demos.teacher == "racer_safe:1.27:8:9" and student.state_history == 30
+    train(student)
+    ck = latest_checkpoint(tmp_path / "grip" / "checkpoints")
+    assert CheckpointPolicy(ck).actor.grip_head is not None
+    cfg = cfg_for("experiment=generalise_rl_grip", *small, f"init.actor={ck}", f"run_dir={tmp_path / 'ppo'}", "total_frames=200",
+                  "env.num_cars=2", "algo.rollout_steps=50", "algo.batch_size=32", "eval.every_episodes=1", "checkpoint.every_frames=100",
+                  env="race")
+    r = train(cfg)
+    assert r["updates"] > 0
+    pol = CheckpointPolicy(r["checkpoint"])
+    assert pol.state_history == 30 and pol.actor.grip_head is not None and hasattr(pol.actor, "log_std")
