@@ -146,11 +146,13 @@ def test_the_command_line_reads_named_specs(capsys):
 
 
 def test_the_shipped_ppo_driver_loads_as_reference_rl():
-    """``reference_rl`` (and ``reference-rl``): the shipped PPO driver, one network on rangefinder + state, no rule."""
+    """``reference_rl`` (and ``reference-rl``): the shipped PPO driver, one network on rangefinder + a state history (its
+    grip head estimates the road's friction from 3 s of it), no rule."""
     from torcsrl.policies import REFERENCE_PPO_POLICY, load_policy
 
     assert REFERENCE_PPO_POLICY.is_file()
     for spec in ("reference_rl", "reference-rl"):
         pol = load_policy(spec)
-        assert tuple(pol.obs_keys) == ("rangefinder", "state")
+        assert tuple(pol.obs_keys) == ("rangefinder", "state") and pol.state_history == 30
+        assert pol.actor.grip_head is not None and hasattr(pol.actor, "log_std")  # PPO's tanh-Gaussian, started from a grip student
         assert pol.fingerprint == load_policy(str(REFERENCE_PPO_POLICY)).fingerprint

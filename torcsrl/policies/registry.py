@@ -89,7 +89,8 @@ _ASSETS = Path(__file__).resolve().parent.parent / "assets"
 REFERENCE_POLICY = _ASSETS / "reference_dagger.pt"
 #: The shipped RL (TD3) driver, ``reference-td3`` (``reference_td3.md``).
 REFERENCE_RL_POLICY = _ASSETS / "reference_td3.pt"
-#: The shipped PPO driver, ``reference_rl`` (``reference_rl.md``): RL from nothing, one network on rangefinder + state.
+#: The shipped PPO driver, ``reference_rl`` (``reference_rl.md``): PPO past a grip-estimating DAgger student, one network
+#: on rangefinder + a 3 s state history.
 REFERENCE_PPO_POLICY = _ASSETS / "reference_rl.pt"
 #: The shipped camera-only driver, ``reference_camera`` (``reference_camera.md``: command, selection, figures).
 REFERENCE_CAMERA_POLICY = _ASSETS / "reference_camera.pt"
