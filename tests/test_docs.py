@@ -100,6 +100,9 @@ def job_overrides(app: str, argv: list[str]) -> list[str] | None:
         if not sep:
             return None  # a positional argument: not an app config command
         name = key.lstrip("+~")
+        if name.startswith("init.") and _PLACEHOLDER.search(value):
+            out.append(f"{key}=runs/placeholder/checkpoints/ckpt.pt")  # a run's checkpoint: validation checks that one is set
+            continue
         if name.startswith("hydra") or name == "hparams_search" or _PLACEHOLDER.search(value):
             continue  # launcher / sweeper settings (optional plugins), or a folder only a run creates
         value = _first_value(value, name)
