@@ -16,7 +16,8 @@ on each track is driven once (2 laps) at the same control rate as the driver.
     python benchmarks/generalisation.py --policy RUN_DIR --curve       # held-out completion against training frames -> PNG
 
 ``--screen`` drives the training tracks instead (``set:train`` and ``gen-10001 … gen-10008`` from the training
-seed range; ``--generated N`` for ``10001 … 10000+N``, ``--generator proc --no-bundled`` for circuits only): the
+seed range; ``--generated N`` for ``10001 … 10000+N``, ``--generator proc --no-bundled`` for circuits only,
+``--generator both`` for gen tracks and circuits: a screen that sees the hairpin circuits): the
 selection screen a shipped driver is chosen on (``--laps 1``). ``--starts K`` drives every trial
 from K starts — the grid, then K-1 seeded random points of the lap (the same for every driver) — so one unlucky
 braking point weighs 1/K of a track instead of the whole track (the counts are then trials, K per track). ``--curve`` drives every checkpoint of each run folder (``--curve-laps`` laps, default 1) on the same tracks
@@ -43,10 +44,14 @@ sys.path.insert(0, str(ROOT))
 def track_lists(screen: bool, generator: str = "gen", generated: int | None = None) -> tuple[list[str], list[str]]:
     """(bundled, generated) track names: with ``screen`` what a shipped driver is chosen on — ``set:train`` and the
     training-range seeds 10001 .. 10000+N (N default 8) — never a held-out one; else ``set:heldout`` and the held-out
-    seeds 0 .. N-1 (N default 20)."""
+    seeds 0 .. N-1 (N default 20). ``generator``: ``gen``, ``proc`` (hairpin circuits), or ``both`` (N of each: the
+    gen tracks, then the proc circuits)."""
     from torcsrl.envs import tracks as _tracks
     from torcsrl.envs.tracks.procedural import heldout_names
 
+    if generator == "both":
+        bundled, gen = track_lists(screen, "gen", generated)
+        return bundled, gen + track_lists(screen, "proc", generated)[1]
     if screen:
         n = 8 if generated is None else int(generated)
         return _tracks.resolve("set:train"), [f"{'proc' if generator == 'proc' else 'gen'}-{s}" for s in range(10001, 10001 + n)]
@@ -193,7 +198,8 @@ def _main(argv: list[str] | None = None) -> int:
     ap.add_argument("--laps", type=int, default=10)
     ap.add_argument("--generated", type=int, default=None,
                     help="generated tracks: held-out seeds 0..N-1 (default 20); with --screen training-range seeds 10001..10000+N (default 8)")
-    ap.add_argument("--generator", choices=("gen", "proc"), default="gen")
+    ap.add_argument("--generator", choices=("gen", "proc", "both"), default="gen",
+                    help="generated tracks: gen, proc (hairpin circuits: where dirt drivers fail most) or both (N of each)")
     ap.add_argument("--no-bundled", action="store_true",
                     help="drive only the generated tracks (e.g. 2-lap trials of them beside a 10-lap run of set:heldout)")
     ap.add_argument("--surfaces", nargs="+", default=["asphalt", "dirt"])

@@ -78,5 +78,9 @@ def test_the_screen_drives_training_tracks_and_training_range_seeds_only():
     assert proc[0] == "proc-10001" and proc[-1] == "proc-10016" and len(proc) == 16
     assert not set(tracks.resolve("set:heldout")) & set(bundled)
     assert all(int(t.split("-")[1]) >= HELDOUT_SEEDS[1] for t in gen + proc)
+    _, both = b.track_lists(True, "both")
+    assert both == gen + [f"proc-{s}" for s in range(10001, 10009)]
+    _, hboth = b.track_lists(False, "both", 3)
+    assert hboth == ["gen-0", "gen-1", "gen-2", "proc-0", "proc-1", "proc-2"]
     held, hgen = b.track_lists(False, "gen", 3)
     assert held == tracks.resolve("set:heldout") and len(hgen) == 3 and all(int(t.split("-")[1]) < HELDOUT_SEEDS[1] for t in hgen)
