@@ -70,6 +70,22 @@ def test_row_actor_keeps_each_rows_history_and_grip_estimate_as_the_one_car_poli
     assert not torch.equal(batch(obs)[0], before[0])
 
 
+def test_row_actor_drives_ppos_mean_action_as_the_one_car_policy():
+    """The shipped PPO driver (``reference_rl``: a tanh-Gaussian actor with a grip head on a 30-reading state history)
+    batches too: its mean action is the same MLP + tanh, row for row the one-car policy's, across a row's restart."""
+    pol = load_policy("reference_rl")
+    assert type(pol.actor).__name__ == "TanhGaussianActor" and pol.state_history == 30 and supports_batch(pol)
+    g = torch.Generator().manual_seed(1)
+    batch, ones = RowActor(pol), [load_policy("reference_rl") for _ in range(4)]
+    for t in range(6):
+        obs = {k: torch.rand(4, *s, generator=g) * 60 for k, s in pol.obs_shapes.items()}
+        if t == 3:
+            batch.forget([2])
+            ones[2].reset()
+        one = torch.stack([p._act(*(obs[k][i] for k in p.obs_keys)) for i, p in enumerate(ones)])
+        assert torch.equal(batch(obs), one), t
+
+
 def test_a_stateful_racer_drives_batched_cells_as_one_car_at_a_time():
     """A student of reference_racer (history + grip head) in groups of 2 cars that restart for the next cell: the
     one-car rows."""

@@ -69,7 +69,7 @@ from torcsrl.envs import make_env
 from torcsrl.envs import tracks as _tracks
 from torcsrl.evaluate.protocol import EpisodeBook, env_sensors
 from torcsrl.evaluate.spec import Degradation, default_max_steps, parse_degradation, seed_for
-from torcsrl.nets import DeterministicActor
+from torcsrl.nets import DeterministicActor, TanhGaussianActor
 from torcsrl.policies import CheckpointPolicy, EnsemblePolicy, Policy, SideGuard
 from torcsrl.transforms import seed_degradation_rows, stack_frames
 
@@ -108,13 +108,16 @@ class _PerCarDraws:
 
 def supports_batch(policy: Policy) -> bool:
     """True when ``policy`` can drive a batch and stay equal to its one-car self: a checkpoint actor
-    (:class:`~torcsrl.nets.DeterministicActor`, with or without a grip head) on vector observations only, a
+    (:class:`~torcsrl.nets.DeterministicActor`, with or without a grip head, or PPO's
+    :class:`~torcsrl.nets.TanhGaussianActor`, whose mean action is the same MLP + tanh) on vector observations only, a
     ``state_history`` included (:class:`RowActor` keeps each row's readings and restarts them with its group)."""
     if isinstance(policy, SideGuard):  # a side guard around such a policy (or ensemble): its correction is row-wise
         return type(policy).__call__ is SideGuard.__call__ and supports_batch(policy.inner)
     if isinstance(policy, EnsemblePolicy):  # an ensemble of such actors: each member batched, combined row for row
         return type(policy).__call__ is EnsemblePolicy.__call__ and all(supports_batch(m) for m in policy.members)
-    return (isinstance(policy, CheckpointPolicy) and type(policy.actor) is DeterministicActor
+    actor = getattr(policy, "actor", None)
+    deterministic = type(actor) is DeterministicActor or (type(actor) is TanhGaussianActor and not actor.state_dependent_std)
+    return (isinstance(policy, CheckpointPolicy) and deterministic
             and not policy.actor.encoder.img_keys and not policy._stacked and type(policy).__call__ is CheckpointPolicy.__call__)
 
 

@@ -43,6 +43,13 @@ class _GripInputs(nn.Module):
             raise AttributeError("this actor has no grip head (built without grip_hidden: algo.grip_estimate=0)")
         return mlp_forward(self.grip_head, x if self._grip_inputs is None else x.index_select(-1, self._grip_inputs))
 
+    def _linears(self) -> list[nn.Linear]:
+        """The linear layers of the policy MLP ``self.net``, in order (cached)."""
+        lins = self.__dict__.get("_lins")
+        if lins is None:
+            lins = self.__dict__["_lins"] = [m for m in self.net if isinstance(m, nn.Linear)]
+        return lins
+
     def mlp_input(self, x: torch.Tensor, grip: torch.Tensor | None = None) -> torch.Tensor:
         """The MLP's input from the encoder's features ``x``: the selected features, and a grip actor's estimate
         (``grip``, computed here when not given), detached."""
@@ -96,12 +103,6 @@ class DeterministicActor(_GripInputs):
             x = F.linear(x, lin.weight, lin.bias).relu_()
         a = torch.tanh(F.linear(x, last.weight, last.bias))
         return a if self._unit else self.a_mid + self.a_half * a
-
-    def _linears(self) -> list[nn.Linear]:
-        lins = self.__dict__.get("_lins")
-        if lins is None:
-            lins = self.__dict__["_lins"] = [m for m in self.net if isinstance(m, nn.Linear)]
-        return lins
 
 
 class TanhGaussianActor(_GripInputs):
