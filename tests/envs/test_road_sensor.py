@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from torcsrl.envs import make_env
-from torcsrl.envs.sensors import ROAD_AHEAD_M, ROAD_SLOTS, road_reading
+from torcsrl.envs.sensors import ROAD_AHEAD_M, ROAD_SLOTS, road_readings
 from torcsrl.envs.track import Track
 
 
@@ -21,9 +21,11 @@ def _circle(radius: float, n: int = 720) -> Track:
 
 @pytest.mark.parametrize("radius", [30.0, 120.0])
 def test_a_circle_reads_one_over_its_radius_on_every_stretch(radius):
-    got = road_reading(_circle(radius), s=17.0, mu=0.6)
-    assert len(got) == len(ROAD_SLOTS) == 1 + len(ROAD_AHEAD_M) and got[0] == pytest.approx(0.6)
-    assert got[1:] == pytest.approx([1.0 / radius] * len(ROAD_AHEAD_M), rel=0.01)  # counter-clockwise: bends left, > 0
+    circle, other = _circle(radius), _circle(2 * radius)  # cars on two tracks in one call: each read on its own
+    got = road_readings([circle, other, circle], np.array([17.0, 5.0, 300.0]), np.array([0.6, 0.5, 1.0]))
+    assert got.shape == (3, len(ROAD_SLOTS)) == (3, 1 + len(ROAD_AHEAD_M)) and got[:, 0].tolist() == pytest.approx([0.6, 0.5, 1.0])
+    n = len(ROAD_AHEAD_M)  # counter-clockwise: bends left, > 0
+    assert got[:, 1:].ravel().tolist() == pytest.approx([1 / radius] * n + [0.5 / radius] * n + [1 / radius] * n, rel=0.01)
 
 
 def test_the_race_env_reads_the_bends_ahead_and_the_surface_under_the_wheels():

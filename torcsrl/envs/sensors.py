@@ -221,14 +221,24 @@ class Rangefinder:
             self.client = None
 
 
-def road_reading(track, s: float, mu: float) -> list[float]:
-    """One car's ``road`` reading (:data:`ROAD_SLOTS`): ``mu`` and the mean curvature [1/m] of ``track``'s centreline
-    over each stretch of :data:`ROAD_AHEAD_M` ahead of arc length ``s`` [m] (heading change / stretch length)."""
-    edges = sorted({x for ab in ROAD_AHEAD_M for x in ab})
-    h = track.heading(np.asarray([s + e for e in edges], dtype=np.float64))
-    at = dict(zip(edges, h.tolist()))
-    out = [float(mu)]
-    for a, b in ROAD_AHEAD_M:
-        dh = (at[b] - at[a] + math.pi) % (2 * math.pi) - math.pi
-        out.append(dh / (b - a))
-    return out
+
+#: Arc lengths ahead of the car [m] whose centreline headings the ``road`` sensor compares (the stretches' ends).
+_ROAD_EDGES = np.array(sorted({x for ab in ROAD_AHEAD_M for x in ab}), dtype=np.float64)
+_ROAD_FROM = np.searchsorted(_ROAD_EDGES, [a for a, _ in ROAD_AHEAD_M])
+_ROAD_TO = np.searchsorted(_ROAD_EDGES, [b for _, b in ROAD_AHEAD_M])
+_ROAD_LEN = np.array([b - a for a, b in ROAD_AHEAD_M])
+
+
+def road_readings(tracks, s: np.ndarray, mu: np.ndarray) -> np.ndarray:
+    """The ``road`` readings ``[n, 6]`` float32 (:data:`ROAD_SLOTS`) of ``n`` cars: each car's ``mu`` and the mean
+    curvature [1/m] of its track's centreline over each stretch of :data:`ROAD_AHEAD_M` ahead of its arc length ``s``
+    [m] (heading change / stretch length). ``tracks``: each car's track; cars on the same track are read at once."""
+    s = np.asarray(s, dtype=np.float64)
+    heading = np.empty((len(s), len(_ROAD_EDGES)))
+    groups: dict[int, list[int]] = {}
+    for i, t in enumerate(tracks):
+        groups.setdefault(id(t), []).append(i)
+    for rows in groups.values():
+        heading[rows] = tracks[rows[0]].heading(s[rows, None] + _ROAD_EDGES)
+    dh = (heading[:, _ROAD_TO] - heading[:, _ROAD_FROM] + math.pi) % (2 * math.pi) - math.pi
+    return np.concatenate([np.asarray(mu, dtype=np.float64).reshape(-1, 1), dh / _ROAD_LEN], 1).astype(np.float32)

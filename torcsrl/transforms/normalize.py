@@ -3,7 +3,8 @@
 :func:`obs_scale` gives the divisors of one observation key, from the sensors' own constants
 (:data:`torcsrl.envs.sensors.RANGE_M`, :data:`~torcsrl.envs.sensors.STATE_SCALE`): rangefinder / 200 m (so [0, 1],
 -1/200 off track), angle / pi, trackPos as is, speeds / 300 km/h, wheel spin / 150 rad/s, rpm / 10,000, gear / 6,
-opponents' sectors / 200 m, the privileged road's curvatures x 20 m -- which maps a lap at racing speed into about [-1, 1], as the studies fed their networks.
+opponents' sectors / 200 m, the privileged road's curvatures x 20 m -- which maps a lap at racing speed into about
+[-1, 1], as the studies fed their networks.
 :func:`normalize_transform` is the TorchRL transform that applies them; the observation pipeline
 (:func:`torcsrl.pipeline.observation_transforms`) puts it after every degradation when ``env.normalize``.
 """

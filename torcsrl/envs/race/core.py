@@ -25,8 +25,8 @@ from torcsrl.envs.race.locate import CarLocator
 from torcsrl.envs.race.views import LearnerView, TrackSlots
 from torcsrl.envs.race.rules import ACTION_MODES, START_MODES, episode_setting_problems, wrap_deltas
 from torcsrl.envs.rewards import REWARD_TERMS, Reward
-from torcsrl.envs.sensors import (MS_TO_KMH, RANGEFINDER_ANGLES_DEG, RANGE_M, ROAD_SLOTS, STATE_SLOTS, TELEMETRY_SLOTS, Rangefinder,
-                                  check_sensors, road_reading)
+from torcsrl.envs.sensors import (MS_TO_KMH, RANGEFINDER_ANGLES_DEG, RANGE_M, ROAD_SLOTS, STATE_SLOTS, TELEMETRY_SLOTS,
+                                  Rangefinder, check_sensors, road_readings)
 from torcsrl.envs.tracks.procedural import ProceduralSpec
 from torcsrl.envs.traffic import (OPPONENT_RANGE_M, OPPONENT_RGBA, OPPONENT_SECTORS, Traffic, TrafficSpec,
                                   opponent_sectors)
@@ -658,9 +658,7 @@ class RaceCore(CarLocator):
             if "telemetry" in keys:
                 obs["telemetry"] = np.ascontiguousarray(st[:, 2:])
         if "road" in keys:  # privileged (an asymmetric critic's): the grip under the wheels and the bends ahead
-            mu = fleet.wheel_mu.mean(axis=1)
-            obs["road"] = np.array([road_reading(self.car_tracks[i], float(self.s[i]), float(mu[i])) for i in range(self.n)],
-                                   dtype=np.float32)
+            obs["road"] = road_readings(self.car_tracks, self.s, fleet.wheel_mu.mean(axis=1))
         if self.traffic is not None:
             self._obs_all = obs
             obs = self._learner_obs(obs)
